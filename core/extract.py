@@ -1,0 +1,181 @@
+"""From a fitted network to outputs: the mesh (coarse-to-fine marching cubes), normals, Laplacian.
+
+Everything here works in the unit frame and in chunks, so memory stays bounded however many
+points or grid nodes there are.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import trimesh
+from scipy.ndimage import zoom
+from skimage.measure import marching_cubes
+
+from core.errors import CancelCheck, EmptySurfaceError, check_cancel
+from core.network import ImplicitNetwork
+
+# The grid covers the cloud's bounding box plus this margin on every side (unit frame).
+GRID_MARGIN = 0.05
+# A cell is refined when some corner has |f| below this many cell diagonals. Every point of a
+# cell lies within half a diagonal of a corner, so for a distance function (|∇f| = 1) 0.5 would
+# be exact; 0.75 leaves room for |∇f| up to 1.5.
+_NEAR_DIAGONALS = 0.75
+_COARSEST_CELLS = 32
+
+
+@torch.no_grad()
+def evaluate(
+    model: ImplicitNetwork, points: np.ndarray, chunk: int = 65_536, should_cancel: CancelCheck | None = None
+) -> np.ndarray:
+    """f at ``points`` (n, 3), float32, in chunks; ``should_cancel`` is polled before each."""
+    values = np.empty(len(points), dtype=np.float32)
+    for start in range(0, len(points), chunk):
+        check_cancel(should_cancel)
+        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
+        values[start : start + chunk] = model(batch).numpy()
+    return values
+
+
+@torch.no_grad()
+def normals_and_laplacian(
+    model: ImplicitNetwork, points: np.ndarray, chunk: int = 8192, should_cancel: CancelCheck | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals ∇f/‖∇f‖ (outward, since f < 0 inside) and Δf at ``points``, in chunks."""
+    normals = np.empty((len(points), 3), dtype=np.float32)
+    laplacian = np.empty(len(points), dtype=np.float32)
+    for start in range(0, len(points), chunk):
+        check_cancel(should_cancel)
+        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
+        _, grad, lap = model.derivatives(batch)
+        normals[start : start + chunk] = torch.nn.functional.normalize(grad, dim=1).numpy()
+        laplacian[start : start + chunk] = lap.numpy()
+    return normals, laplacian
+
+
+def extract_mesh(
+    model: ImplicitNetwork,
+    resolution: int,
+    low: np.ndarray,
+    high: np.ndarray,
+    should_cancel: CancelCheck | None = None,
+) -> tuple[trimesh.Trimesh, dict]:
+    """Marching cubes of f = 0 over the box [low, high] plus a margin, in the unit frame.
+
+    The cells are (1 + 2 * GRID_MARGIN) / ``resolution`` wide. f is evaluated on a coarse grid
+    first; each finer level evaluates only the cells that may hold the surface: near the zero
+    level on intermediate levels, and at the finest level the cells whose coarse parent changes
+    sign, grown along the surface until every cell the surface crosses has all its corners
+    evaluated. The grid's boundary is kept outside (f > 0) so the mesh is always closed.
+    Returns the mesh and statistics (how many grid nodes were evaluated, of how many).
+    """
+    cell = (1.0 + 2 * GRID_MARGIN) / resolution
+    levels = max(0, int(math.floor(math.log2(resolution / _COARSEST_CELLS))))
+    step = 2**levels
+    size = np.asarray(high) - np.asarray(low) + 2 * GRID_MARGIN
+    cells = (np.ceil(size / (cell * step)).astype(int)) * step  # fine cells per axis
+    origin = (np.asarray(low) + np.asarray(high)) / 2 - cells * cell / 2
+
+    coarse_cells = cells // step
+    values = evaluate(model, _grid_nodes(origin, cell * step, coarse_cells).reshape(-1, 3), should_cancel=should_cancel)
+    values = values.reshape(coarse_cells + 1)
+    known = np.ones(values.shape, dtype=bool)
+    for level in range(levels - 1, -1, -1):
+        spacing = cell * 2**level
+        finest = level == 0
+        parents = _sign_change_cells(values) if finest else _near_cells(values, spacing * 2)
+        values = zoom(values, (2 * np.asarray(values.shape) - 1) / np.asarray(values.shape), order=1)
+        was_known, known = known, np.zeros(values.shape, dtype=bool)
+        known[::2, ::2, ::2] = was_known
+        wanted = _cell_nodes(_split_cells(parents)) & ~known
+        while wanted.any():
+            values[wanted] = evaluate(model, origin + np.argwhere(wanted) * spacing, should_cancel=should_cancel)
+            known |= wanted
+            if not finest:
+                break
+            wanted = _surface_neighbour_nodes(values, known)
+
+    if not (values.min() < 0 < values.max()):
+        raise EmptySurfaceError("the fitted function has no zero level set: no surface was found")
+    for axis in range(3):  # close surfaces that reach the grid's boundary
+        boundary = [slice(None)] * 3
+        for end in (0, -1):
+            boundary[axis] = end
+            values[tuple(boundary)] = np.maximum(values[tuple(boundary)], cell)
+    vertices, faces, _, _ = marching_cubes(values, 0.0, spacing=(cell,) * 3, gradient_direction="descent")
+    mesh = trimesh.Trimesh(vertices + origin, faces, process=False)
+    return mesh, {"grid_nodes": int(values.size), "evaluated_nodes": int(np.count_nonzero(known))}
+
+
+def _grid_nodes(origin: np.ndarray, spacing: float, cells: np.ndarray) -> np.ndarray:
+    axes = [origin[a] + spacing * np.arange(cells[a] + 1) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+
+def _near_cells(values: np.ndarray, spacing: float) -> np.ndarray:
+    """Cells with a corner where |f| is below ``_NEAR_DIAGONALS`` cell diagonals."""
+    magnitude = np.abs(values)
+    nx, ny, nz = np.asarray(values.shape) - 1
+    corners = [magnitude[dx : dx + nx, dy : dy + ny, dz : dz + nz] for dx, dy, dz in _CORNERS]
+    return np.minimum.reduce(corners) < _NEAR_DIAGONALS * spacing * math.sqrt(3)
+
+
+def _sign_change_cells(values: np.ndarray) -> np.ndarray:
+    """Cells whose corners are not all on one side of the zero level."""
+    nx, ny, nz = np.asarray(values.shape) - 1
+    corners = [values[dx : dx + nx, dy : dy + ny, dz : dz + nz] for dx, dy, dz in _CORNERS]
+    return (np.minimum.reduce(corners) < 0) & (np.maximum.reduce(corners) >= 0)
+
+
+def _split_cells(cells: np.ndarray) -> np.ndarray:
+    """Each cell of a level as its eight children on the next finer level."""
+    return cells.repeat(2, axis=0).repeat(2, axis=1).repeat(2, axis=2)
+
+
+def _surface_neighbour_nodes(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Unknown nodes of the cells the surface enters from a fully known cell through a face.
+
+    A cell whose corners are all known and change sign holds surface; through each face whose
+    own four corners change sign the surface continues into the neighbouring cell.
+    """
+    crossing = _sign_change_cells(values) & _all_corners(known)
+    wanted = np.zeros(crossing.shape, dtype=bool)
+    for axis in range(3):
+        inner = _sign_change_faces(values, axis)  # the faces between two cells along `axis`
+        lower, upper = [slice(None)] * 3, [slice(None)] * 3
+        lower[axis], upper[axis] = slice(0, -1), slice(1, None)
+        wanted[tuple(lower)] |= crossing[tuple(upper)] & inner
+        wanted[tuple(upper)] |= crossing[tuple(lower)] & inner
+    return _cell_nodes(wanted) & ~known
+
+
+def _sign_change_faces(values: np.ndarray, axis: int) -> np.ndarray:
+    """For each face across ``axis`` between two cells: do its four corners change sign?"""
+    n = np.asarray(values.shape) - 1
+    corners = []
+    for db, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        index = [slice(1, -1)] * 3
+        b, c = [a for a in range(3) if a != axis]
+        index[b], index[c] = slice(db, db + n[b]), slice(dc, dc + n[c])
+        corners.append(values[tuple(index)])
+    return (np.minimum.reduce(corners) < 0) & (np.maximum.reduce(corners) >= 0)
+
+
+def _all_corners(nodes: np.ndarray) -> np.ndarray:
+    """Cells whose eight corner nodes are all set in ``nodes``."""
+    nx, ny, nz = np.asarray(nodes.shape) - 1
+    return np.logical_and.reduce([nodes[dx : dx + nx, dy : dy + ny, dz : dz + nz] for dx, dy, dz in _CORNERS])
+
+
+def _cell_nodes(cells: np.ndarray) -> np.ndarray:
+    """The nodes that are corners of at least one of the given cells."""
+    nodes = np.zeros(np.asarray(cells.shape) + 1, dtype=bool)
+    nx, ny, nz = cells.shape
+    for dx, dy, dz in _CORNERS:
+        nodes[dx : dx + nx, dy : dy + ny, dz : dz + nz] |= cells
+    return nodes
+
+
+_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]

@@ -1,0 +1,50 @@
+"""The loss terms: L = L_vanish + λ1·L_eikonal + λ2·L_laplacian (the paper's), + λ3·L_free_space."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def vanish_loss(f_points: Tensor) -> Tensor:
+    """Mean |f| over the input points: the surface passes through them."""
+    return f_points.abs().mean()
+
+
+def eikonal_loss(grad: Tensor) -> Tensor:
+    """Mean (‖∇f‖ - 1)² over the samples: f is a distance function."""
+    return (grad.norm(dim=1) - 1).square().mean()
+
+
+def laplacian_loss(
+    lap_points: Tensor, tau: float, edge_sampling: bool, penalty: str = "quadratic", scale: float = 1.0
+) -> tuple[Tensor, Tensor]:
+    """Mean penalty of Δf over the non-edge points, and the edge mask (|Δf| >= tau) left out.
+
+    With ``edge_sampling`` (DES) the mask is taken from the current Δf, so it is re-selected at
+    every step, before the backward pass; without it every point counts and the mask is empty.
+    ``penalty`` is the paper's ``"quadratic"`` (Δf)², or ``"robust"``: Geman-McClure,
+    (Δf)² / (1 + (Δf / scale)²), which is (Δf)² for small values and levels off at scale², so
+    that its pull fades for |Δf| beyond a few ``scale``. The quadratic pulls hardest on the points
+    just below tau, at the border of every edge, and wears edges away from there.
+    """
+    edges = lap_points.detach().abs() >= tau if edge_sampling else torch.zeros_like(lap_points, dtype=torch.bool)
+    kept = lap_points[~edges]
+    if not kept.numel():
+        return lap_points.sum() * 0.0, edges
+    square = kept.square()
+    if penalty == "robust":
+        square = square / (1 + square / scale**2)
+    return square.mean(), edges
+
+
+def free_space_loss(f_samples: Tensor, distance: Tensor, sign: Tensor, margin: float) -> Tensor:
+    """Mean hinge that keeps the surface out of empty space.
+
+    A sample at ``distance`` from the nearest input point is at least ``distance - margin`` from
+    the surface: |f| must be that large, with the right sign where ``sign`` is known (±1) and
+    either sign where it is not (0). A spurious sheet, a filled hole or a lump left over from the
+    initial sphere, far from every point, violates it; a surface through the points does not.
+    """
+    signed = torch.where(sign != 0, sign * f_samples, f_samples.abs())
+    return torch.relu(distance - margin - signed).mean()

@@ -1,0 +1,57 @@
+"""The parameters of a reconstruction, with their bounds and defaults (no torch here)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+
+
+class FitParams(BaseModel):
+    """Everything a fit and its extraction depend on.
+
+    The loss is ``L_vanish + lambda1 * L_eikonal + lambda2 * L_laplacian + lambda3 * L_free_space``
+    (see ``core.losses``). ``L_laplacian`` is the *mean* penalty of Δf over the non-edge points of
+    the batch (the paper writes a sum; a mean keeps ``lambda2`` independent of the number of
+    points). ``tau`` and every length are in the normalised frame, where the cloud is centred and
+    its largest bounding-box extent is 1.
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    iterations: int = Field(2000, ge=1, le=100_000, description="optimisation steps")
+    lambda1: float = Field(0.1, ge=0, le=1000, description="weight of the eikonal term")
+    lambda2: float = Field(0.001, ge=0, le=1000, description="weight of the Laplacian term (0: plain IGR)")
+    tau: float = Field(20.0, gt=0, le=1e6, description="edge threshold on |Δf|, normalised frame")
+    edge_sampling: bool = Field(
+        True, description="dynamic edge sampling: leave points with |Δf| >= tau out of the Laplacian term"
+    )
+    laplacian_penalty: Literal["robust", "quadratic"] = Field(
+        "robust", description="penalty of Δf: the paper's quadratic, or robust (Geman-McClure, levels off at penalty_scale²)"
+    )
+    penalty_scale: float = Field(5.0, gt=0, le=1e4, description="|Δf| where the robust penalty levels off")
+    lambda3: float = Field(
+        1.0, ge=0, le=1000, description="weight of the free-space term, which keeps the surface out of empty space (0: off)"
+    )
+    resolution: int = Field(256, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")
+    width: int = Field(256, ge=16, le=1024, description="hidden units per layer")
+    depth: int = Field(4, ge=1, le=12, description="hidden layers")
+    beta: float = Field(100.0, gt=0, le=1e4, description="softplus sharpness (IGR uses 100)")
+    batch_points: int = Field(2048, ge=64, le=65_536, description="input points per step")
+    learning_rate: float = Field(5e-3, gt=0, le=1.0, description="initial Adam learning rate")
+    precision: Literal["auto", "float32", "bfloat16"] = Field(
+        "auto", description="matrix products in training: bfloat16 where the CPU has it natively (auto), or float32"
+    )
+    final_learning_rate: float = Field(
+        2.5e-4, gt=0, le=1.0, description="learning rate at the last step (geometric decay)"
+    )
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, value, info: ValidationInfo):
+        # pydantic's lax mode reads True as 1; a form or JSON client sending a boolean for a
+        # number has made a mistake worth reporting.
+        if isinstance(value, bool) and cls.model_fields[info.field_name].annotation is not bool:
+            raise ValueError("expected a number, not a boolean")
+        return value

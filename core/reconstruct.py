@@ -1,0 +1,112 @@
+"""One reconstruction end to end: normalise, fit, extract, and write the three outputs."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from core.extract import extract_mesh, normals_and_laplacian
+from core.errors import CancelCheck
+from core.fit import Progress, ProgressCallback, fit
+from core.frame import Frame
+from core.params import FitParams
+
+OUTPUT_FILES = ("mesh.obj", "normals.json", "edges.json")
+
+
+@dataclass
+class Reconstruction:
+    """The outputs of one reconstruction, in the input's coordinates.
+
+    ``edge_laplacian`` holds |Δf| at the edge points in the unit frame, where ``tau`` applies.
+    """
+
+    mesh: trimesh.Trimesh
+    normals: np.ndarray
+    edge_indices: np.ndarray
+    edge_points: np.ndarray
+    edge_laplacian: np.ndarray
+    tau: float
+    timings: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
+
+    def mesh_obj(self) -> bytes:
+        """The mesh as Wavefront OBJ text."""
+        return trimesh.exchange.obj.export_obj(self.mesh, include_normals=False, include_texture=False).encode()
+
+    def normals_json(self) -> bytes:
+        """``{"normals": [[nx, ny, nz], ...]}``, one unit vector per input point, input order."""
+        return json.dumps({"normals": np.round(self.normals.astype(np.float64), 6).tolist()}).encode()
+
+    def edges_json(self) -> bytes:
+        """``{"tau", "count", "indices", "points", "laplacian"}`` of the edge points."""
+        return json.dumps(
+            {
+                "tau": self.tau,
+                "count": len(self.edge_indices),
+                "indices": self.edge_indices.tolist(),
+                "points": self.edge_points.tolist(),
+                "laplacian": np.round(self.edge_laplacian.astype(np.float64), 4).tolist(),
+            }
+        ).encode()
+
+    def outputs(self) -> dict[str, bytes]:
+        """The three output files by name."""
+        return {"mesh.obj": self.mesh_obj(), "normals.json": self.normals_json(), "edges.json": self.edges_json()}
+
+    def summary(self) -> dict:
+        """Counts and timings, as a JSON-ready dict."""
+        return {
+            "vertices": len(self.mesh.vertices),
+            "faces": len(self.mesh.faces),
+            "watertight": bool(self.mesh.is_watertight),
+            "edge_points": len(self.edge_indices),
+            "timings": {name: round(seconds, 3) for name, seconds in self.timings.items()},
+            **self.stats,
+        }
+
+
+def reconstruct(
+    points: np.ndarray,
+    params: FitParams,
+    progress: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+) -> Reconstruction:
+    """Fit ``points`` (N, 3, input coordinates) and extract the mesh, normals and edge points."""
+    frame = Frame.of(points)
+    unit = frame.to_unit(points)
+    started = time.perf_counter()
+    model = fit(unit, params, progress=progress, should_cancel=should_cancel)
+    fitted = time.perf_counter()
+
+    if progress is not None:
+        progress(Progress(stage="extracting", iteration=params.iterations, total=params.iterations))
+    mesh, stats = extract_mesh(model, params.resolution, unit.min(axis=0), unit.max(axis=0), should_cancel)
+    mesh.vertices = frame.from_unit(mesh.vertices)
+    normals, laplacian = normals_and_laplacian(model, unit, should_cancel=should_cancel)
+    edges = np.flatnonzero(np.abs(laplacian) > params.tau)
+    done = time.perf_counter()
+
+    return Reconstruction(
+        mesh=mesh,
+        normals=normals,
+        edge_indices=edges,
+        edge_points=points[edges],
+        edge_laplacian=np.abs(laplacian[edges]),
+        tau=params.tau,
+        timings={"fit_seconds": fitted - started, "extract_seconds": done - fitted},
+        stats=stats,
+    )
+
+
+def write_outputs(reconstruction: Reconstruction, directory: str | Path) -> None:
+    """Write ``mesh.obj``, ``normals.json`` and ``edges.json`` into ``directory``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, content in reconstruction.outputs().items():
+        (directory / name).write_bytes(content)
