@@ -1,0 +1,127 @@
+"""The ``edgerecon`` command: ``fit`` runs a reconstruction in-process; ``serve`` and ``worker`` run the service."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+from typing import Literal, get_args, get_origin
+
+from pydantic import ValidationError
+
+from core.errors import EdgereconError
+from core.params import FitParams
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="edgerecon", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    fit_parser = commands.add_parser("fit", help="reconstruct a PLY cloud into DIR/mesh.obj, normals.json, edges.json")
+    fit_parser.add_argument("input", type=Path, help="the point cloud, a PLY file")
+    fit_parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    _add_param_options(fit_parser)
+    serve_parser = commands.add_parser(
+        "serve", help="start the service: the API, N workers, and its own Redis when REDIS_URL is unset"
+    )
+    serve_parser.add_argument("--host", default="127.0.0.1", help="address the API listens on (default 127.0.0.1)")
+    serve_parser.add_argument("--port", type=int, default=8000, help="port the API listens on (default 8000)")
+    serve_parser.add_argument("--workers", type=int, default=1, help="worker processes to start (default 1)")
+    commands.add_parser("worker", help="start one more worker against REDIS_URL")
+    args = parser.parse_args(argv)
+    if args.command == "fit":
+        return _fit(args)
+    if args.command == "serve":
+        from service.serve import serve
+
+        return serve(args.host, args.port, args.workers)
+    if args.command == "worker":
+        from worker.main import main as run_worker
+
+        return run_worker()
+    return 2
+
+
+def _add_param_options(parser: argparse.ArgumentParser) -> None:
+    """One option per FitParams field, named after it; unset options keep the model's default."""
+    for name, field in FitParams.model_fields.items():
+        flag = "--" + name.replace("_", "-")
+        help_text = f"{field.description} (default {field.default})"
+        if field.annotation is bool:
+            parser.add_argument(flag, dest=name, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        elif get_origin(field.annotation) is Literal:
+            parser.add_argument(flag, dest=name, choices=get_args(field.annotation), default=None, help=help_text)
+        else:
+            parser.add_argument(flag, dest=name, type=field.annotation, default=None, help=help_text)
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    given = {name: getattr(args, name) for name in FitParams.model_fields if getattr(args, name) is not None}
+    try:
+        params = FitParams(**given)
+    except ValidationError as error:
+        for problem in error.errors():
+            print(f"edgerecon: --{problem['loc'][0]}: {problem['msg']}", file=sys.stderr)
+        return 2
+    try:
+        from core.ply import read_points
+        from core.reconstruct import reconstruct
+
+        points = read_points(args.input)
+        bar = tqdm(total=params.iterations, unit="it", desc="fitting", dynamic_ncols=True)
+
+        def progress(update):
+            if update.stage == "fitting":
+                bar.update(update.iteration - bar.n)
+                if update.iteration % 50 == 0 or update.iteration == update.total:
+                    bar.set_postfix(loss=f"{update.losses['total']:.4f}", edges=f"{update.edge_share:.1%}")
+            else:
+                bar.close()
+                print("extracting the mesh, normals and edges...", file=sys.stderr)
+
+        try:
+            result = reconstruct(points, params, progress=progress)
+        finally:
+            bar.close()
+        _write_atomically(result.outputs(), args.out)
+    except (EdgereconError, OSError) as error:
+        print(f"edgerecon: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("edgerecon: interrupted", file=sys.stderr)
+        return 130
+    summary = result.summary()
+    print(
+        f"wrote {args.out}/mesh.obj ({summary['vertices']} vertices, {summary['faces']} faces), "
+        f"normals.json, edges.json ({summary['edge_points']} edge points) "
+        f"in {summary['timings']['fit_seconds']:.1f} s fit + {summary['timings']['extract_seconds']:.1f} s extraction"
+    )
+    return 0
+
+
+def _write_atomically(files: dict[str, bytes], directory: Path) -> None:
+    """Write ``files`` into ``directory`` so that a failure leaves no partial folder or file."""
+    directory = directory.resolve()
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}-", dir=directory.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    staging.chmod(0o777 & ~umask)  # mkdtemp makes it private; the output folder should not be
+    try:
+        for name, content in files.items():
+            (staging / name).write_bytes(content)
+        if not directory.exists():
+            staging.rename(directory)
+            return
+        for name in files:
+            os.replace(staging / name, directory / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

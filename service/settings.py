@@ -1,0 +1,65 @@
+"""The service's configuration, read from the environment (pydantic-settings).
+
+Every setting is ``EDGERECON_<NAME>`` (e.g. ``EDGERECON_JOB_TTL=3600``) except the Redis address,
+which is the conventional ``REDIS_URL``. Empty variables count as unset. The API, the workers and
+``edgerecon serve`` all read the same settings, so one environment configures the whole service.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from pydantic import AliasChoices, Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from core.ply import MAX_POINTS, MIN_POINTS
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="EDGERECON_", env_ignore_empty=True, frozen=True)
+
+    redis_url: str | None = Field(
+        None,
+        validation_alias=AliasChoices("REDIS_URL", "EDGERECON_REDIS_URL"),
+        description="redis://host:port/db or unix:///path; unset: `edgerecon serve` starts its own Redis",
+    )
+    api_key: SecretStr | None = Field(None, description="when set, every /v1 route needs 'Authorization: Bearer <key>'")
+
+    # Limits on what a user may send.
+    max_upload_bytes: int = Field(
+        64 * 1024 * 1024, ge=1024, description="largest request body, checked while it streams in"
+    )
+    min_points: int = Field(MIN_POINTS, ge=1, description="fewest points a cloud may have")
+    max_points: int = Field(MAX_POINTS, ge=1, description="most points a cloud may have")
+
+    # Lifetimes.
+    job_ttl: int = Field(
+        24 * 3600, ge=1, description="seconds a job, its input and its results are kept after its last change"
+    )
+    job_timeout: int = Field(3600, ge=1, description="seconds a job may run before the worker stops it (failed)")
+    heartbeat_ttl: int = Field(
+        30, ge=2, description="a running job whose worker has not signalled for this many seconds is failed"
+    )
+    sweep_interval: float = Field(10.0, gt=0, description="seconds between the API's checks for jobs of dead workers")
+    progress_interval: float = Field(
+        0.5, gt=0, description="seconds between a worker's progress writes (which also pick up cancellation)"
+    )
+
+    # Where things live in Redis: change them to run several services on one Redis.
+    queue: str = Field("edgerecon", pattern=r"^[A-Za-z0-9_.-]+$", description="rq queue name")
+    key_prefix: str = Field("edgerecon", pattern=r"^[A-Za-z0-9_.-]+$", description="prefix of every job key")
+
+    # The worker process.
+    worker_threads: int = Field(1, ge=1, le=256, description="torch threads per worker process")
+    worker_nice: int = Field(
+        10, ge=0, le=19, description="added niceness of worker processes, so fits yield the CPU to the API's requests"
+    )
+    worker_warmup: bool = Field(
+        True, description="fit a tiny cloud at worker start so the first job pays no compile time"
+    )
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The settings of this process, read once."""
+    return Settings()

@@ -1,0 +1,129 @@
+"""The worker process (``edgerecon worker``): one rq SimpleWorker that owns torch, and a heartbeat thread.
+
+Why a SimpleWorker, which runs each job in the worker process itself, rather than rq's default
+Worker, which forks a "work horse" per job: torch's OpenMP thread pool is not fork-safe, and a
+work horse forked before torch is loaded would pay the torch import and the torch.compile warm-up
+(seconds) on every job. So each worker process imports torch once, sets its thread count, compiles
+the kernels on a tiny warm-up fit, and then runs jobs one after another. What the forking Worker
+gave for free is rebuilt on the job's record (``service.store``):
+
+- cancel: the job's progress writes (a few per second) find the status changed to ``canceled`` and
+  core stops at its next step;
+- crash: the heartbeat thread keeps ``{prefix}:job:{id}:alive`` alive while a job runs; if the
+  process dies (SIGKILL, OOM), the key expires after ``heartbeat_ttl`` seconds and the API fails the
+  job (when its status is read, and in its periodic sweep);
+- shutdown: the first SIGINT/SIGTERM stops the running job at its next step (it fails with "the
+  worker was shut down"), then the worker exits; a second signal exits at once (rq's cold shutdown).
+
+Scale by running more worker processes: one per core with ``EDGERECON_WORKER_THREADS=1``, or fewer
+with more torch threads each. Workers lower their CPU priority (``EDGERECON_WORKER_NICE``, +10 by
+default) so that on shared cores the API's status polls stay fast while fits run.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import threading
+
+import numpy as np
+from redis.exceptions import RedisError
+from rq.serializers import JSONSerializer
+from rq.worker import SimpleWorker
+
+from service.settings import Settings, get_settings
+from service.store import Store
+from worker import jobs
+
+log = logging.getLogger("edgerecon.worker")
+
+
+class FitWorker(SimpleWorker):
+    """A SimpleWorker whose first SIGINT/SIGTERM also stops the running job at its next step."""
+
+    def request_stop(self, signum, frame):
+        jobs.shutdown_requested.set()
+        super().request_stop(signum, frame)
+
+
+class Heartbeat(threading.Thread):
+    """Every ``period`` seconds: announce the worker, and keep its running job (if any) alive."""
+
+    def __init__(self, store: Store, worker_name: str, period: float):
+        super().__init__(name="edgerecon-heartbeat", daemon=True)
+        self.store, self.worker_name, self.period = store, worker_name, period
+        self.stopping = threading.Event()
+
+    def run(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                self.store.worker_beat(self.worker_name)
+                job_id = jobs.running_job
+                if job_id:
+                    self.store.keep_alive(job_id, self.worker_name)
+            except RedisError as error:
+                log.warning("heartbeat failed: %s", error)
+            self.stopping.wait(self.period)
+
+    def stop(self) -> None:
+        self.stopping.set()
+        self.join()
+        try:
+            self.store.worker_gone(self.worker_name)
+        except RedisError:
+            pass
+
+
+def main() -> int:
+    """Run one worker against REDIS_URL until SIGINT/SIGTERM."""
+    settings = get_settings()
+    if not settings.redis_url:
+        print("edgerecon worker: REDIS_URL is not set; point it at the Redis the API uses", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # Fits are batch work: when they share cores with the API, its status polls should win.
+    os.nice(settings.worker_nice)
+    try:
+        prepare_torch(settings)
+    except KeyboardInterrupt:
+        return 130
+    store = jobs.get_store()
+    worker = FitWorker([store.queue], connection=store.redis, serializer=JSONSerializer)
+    heartbeat = Heartbeat(store, worker.name, period=settings.heartbeat_ttl / 3)
+    heartbeat.start()
+    try:
+        worker.work(logging_level="INFO")
+    finally:
+        heartbeat.stop()
+    return 0
+
+
+def prepare_torch(settings: Settings) -> None:
+    """Import torch and core once, set the thread count, and (optionally) compile on a tiny fit."""
+    import torch
+
+    torch.set_num_threads(settings.worker_threads)
+    from core.errors import EdgereconError
+    from core.params import FitParams
+    from core.reconstruct import reconstruct
+
+    if settings.worker_warmup:
+        log.info("warming up (torch.compile of the network's kernels)...")
+        try:
+            reconstruct(_sphere(400), FitParams(iterations=2, resolution=32))
+        except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
+            log.info("warm-up fit: %s", error)
+    log.info("torch ready: %d thread(s)", torch.get_num_threads())
+
+
+def _sphere(n: int) -> np.ndarray:
+    """``n`` points spread evenly on the unit sphere (a Fibonacci lattice)."""
+    index = np.arange(n) + 0.5
+    polar = np.arccos(1 - 2 * index / n)
+    azimuth = np.pi * (1 + 5**0.5) * index
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
