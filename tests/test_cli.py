@@ -1,0 +1,228 @@
+"""The ``edgerecon fit`` command, run as a user runs it (a subprocess), on the example cloud.
+
+The cloud is moved and scaled first (x100, shifted) so that the outputs' mapping back to the
+input's coordinates is checked too. The network is kept small and torch on one thread so the run
+takes seconds on a shared two-core machine. The example cloud and core.shapes, which made it,
+are checked here too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.ply import read_points
+from core.shapes import write_ply
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cube.ply"
+SCALE, SHIFT = 100.0, np.array([10.0, -5.0, 3.0])
+FAST = ["--iterations", "30", "--resolution", "32", "--width", "64", "--depth", "2", "--batch-points", "512"]
+
+
+def command() -> list[str]:
+    script = Path(sys.executable).parent / "edgerecon"
+    return [str(script)] if script.exists() else [sys.executable, "-m", "service.cli"]
+
+
+def run(*args, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+    return subprocess.run(
+        [*command(), *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def moved_cloud(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("input") / "part.ply"
+    write_ply(path, read_points(EXAMPLE) * SCALE + SHIFT)
+    return path
+
+
+@pytest.fixture(scope="module")
+def fitted(moved_cloud, tmp_path_factory):
+    """One successful run, shared by the checks of its three outputs."""
+    parent = tmp_path_factory.mktemp("run")
+    result = run("fit", moved_cloud, "--out", parent / "out", "--tau", "2", *FAST, cwd=parent)
+    assert result.returncode == 0, result.stderr
+    return parent, result
+
+
+def test_example_cloud_is_what_the_readme_says():
+    assert EXAMPLE.stat().st_size < 200_000
+    assert EXAMPLE.read_bytes().startswith(b"ply\nformat binary_little_endian 1.0\nelement vertex 6000\n")
+    points = read_points(EXAMPLE)
+    assert points.shape == (6000, 3)
+    assert np.allclose(points.min(axis=0), -0.5, atol=0.03) and np.allclose(points.max(axis=0), 0.5, atol=0.03)
+
+
+def test_example_cloud_is_reproducible(tmp_path):
+    from core.shapes import sample_shape
+
+    write_ply(tmp_path / "cube.ply", sample_shape("cube", n_points=6000, noise=0.005, seed=0).points)
+    assert (tmp_path / "cube.ply").read_bytes() == EXAMPLE.read_bytes()
+
+
+@pytest.mark.parametrize("name", ["cube", "box", "l_shape", "cylinder", "sphere"])
+def test_shapes_ground_truth_is_consistent(name):
+    """core.shapes, which made the example: unit frame, labels as ../shared/data defines them."""
+    from core.metrics import distance_to_mesh
+    from core.shapes import sample_shape
+
+    shape = sample_shape(name, n_points=4000, seed=3)
+    mesh = shape.mesh
+    assert mesh.is_watertight and mesh.volume > 0
+    np.testing.assert_allclose(mesh.bounds.sum(axis=0), 0.0, atol=1e-12)
+    assert mesh.extents.max() == pytest.approx(1.0)
+    assert shape.points.shape == shape.clean_points.shape == shape.normals.shape == (4000, 3)
+    assert distance_to_mesh(shape.clean_points[:500], mesh.vertices, mesh.faces).max() < 1e-9
+    noise = shape.points - shape.clean_points
+    assert noise.std() == pytest.approx(0.005, rel=0.05) and abs(noise.mean()) < 5e-4
+    np.testing.assert_allclose(np.linalg.norm(shape.normals, axis=1), 1.0, atol=1e-12)
+    # Outward: the normal agrees with the (outward) face it was drawn from, to within the faceting.
+    face = mesh.face_normals[shape.face_index]
+    assert ((shape.normals * face).sum(axis=1) > np.cos(np.radians(5))).all()
+    assert np.array_equal(shape.is_edge, shape.edge_dist <= 0.01)
+    if name == "sphere":
+        assert not shape.is_edge.any() and np.isinf(shape.edge_dist).all() and len(shape.edge_samples) == 0
+    else:
+        assert 0.02 < shape.is_edge.mean() < 0.12
+        # every edge sample lies on the boundary between two faces: on the mesh, near no face interior
+        assert distance_to_mesh(shape.edge_samples[::50], mesh.vertices, mesh.faces).max() < 1e-9
+    again = sample_shape(name, n_points=4000, seed=3)
+    assert np.array_equal(again.points, shape.points)
+    assert not np.array_equal(sample_shape(name, n_points=4000, seed=4).points, shape.points)
+
+
+def test_shapes_match_the_shared_cube(shared_data):
+    from core.shapes import sample_shape
+
+    shape = sample_shape("cube", n_points=16_384, seed=0)
+    labels = np.load(shared_data / "cube" / "labels.npz")
+    edges = np.load(shared_data / "cube" / "edges_gt.npy")
+    assert shape.is_edge.mean() == pytest.approx(labels["is_edge"].mean(), abs=0.005)
+    assert len(shape.edge_samples) == len(edges)
+    ordered = lambda a: a[np.lexsort(np.round(a, 6).T)]  # noqa: E731
+    np.testing.assert_allclose(ordered(shape.edge_samples), ordered(edges.astype(np.float64)), atol=1e-6)
+
+
+def test_help_lists_the_commands(tmp_path):
+    result = run("--help", cwd=tmp_path)
+    assert result.returncode == 0 and "fit" in result.stdout
+    result = run("fit", "--help", cwd=tmp_path)
+    assert result.returncode == 0 and "--tau" in result.stdout and "--no-edge-sampling" in result.stdout
+
+
+def test_fit_writes_exactly_the_three_outputs(fitted):
+    parent, result = fitted
+    assert sorted(p.name for p in parent.iterdir()) == ["out"], "a staging folder was left behind"
+    assert sorted(p.name for p in (parent / "out").iterdir()) == ["edges.json", "mesh.obj", "normals.json"]
+    assert "wrote" in result.stdout and "mesh.obj" in result.stdout
+    assert "Traceback" not in result.stderr
+
+
+def test_mesh_loads_in_input_coordinates(fitted, moved_cloud):
+    import trimesh
+
+    mesh = trimesh.load(fitted[0] / "out" / "mesh.obj", force="mesh", process=False)
+    assert len(mesh.faces) > 500 and len(mesh.vertices) > 250
+    points = read_points(moved_cloud)
+    low, high = points.min(axis=0), points.max(axis=0)
+    slack = 0.15 * SCALE  # the grid's margin and rounding, in input units
+    assert (mesh.bounds[0] >= low - slack).all() and (mesh.bounds[1] <= high + slack).all()
+    assert np.linalg.norm(mesh.vertices.mean(axis=0) - SHIFT) < 0.2 * SCALE
+
+
+def test_normals_one_unit_vector_per_point_mostly_outward(fitted, moved_cloud):
+    normals = np.array(json.loads((fitted[0] / "out" / "normals.json").read_text())["normals"])
+    points = read_points(moved_cloud)
+    assert normals.shape == points.shape
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    # 30 steps from the initial sphere: the normals already point away from the cube's centre.
+    outward = ((points - SHIFT) * normals).sum(axis=1) > 0
+    assert outward.mean() > 0.9
+
+
+def test_edges_json_follows_the_design(fitted, moved_cloud):
+    edges = json.loads((fitted[0] / "out" / "edges.json").read_text())
+    assert set(edges) == {"tau", "count", "indices", "points", "laplacian"}
+    assert edges["tau"] == 2.0
+    points = read_points(moved_cloud)
+    indices = np.array(edges["indices"], dtype=np.int64)
+    assert 0 < edges["count"] == len(indices) == len(edges["points"]) == len(edges["laplacian"]) < len(points)
+    assert (np.diff(indices) > 0).all() and indices[0] >= 0 and indices[-1] < len(points)
+    np.testing.assert_allclose(np.array(edges["points"]), points[indices], rtol=0, atol=1e-9)
+    assert (np.array(edges["laplacian"]) > edges["tau"] - 1e-3).all()
+
+
+def _write(kind: str, folder: Path) -> Path:
+    path = folder / f"{kind}.ply"
+    if kind == "nan":
+        points = read_points(EXAMPLE)[:300].copy()
+        points[12, 1] = np.nan
+        write_ply(path, points)
+    elif kind == "not_a_ply":
+        path.write_text("x y z\n0 0 0\n1 0 0\n")
+    elif kind == "too_few":
+        write_ply(path, read_points(EXAMPLE)[:20])
+    return path
+
+
+@pytest.mark.parametrize(
+    "kind, options, code, phrase",
+    [
+        ("nan", [], 1, "NaN or infinite"),
+        ("not_a_ply", [], 1, "not a PLY"),
+        ("too_few", [], 1, "at least"),
+        ("missing", [], 1, "No such file"),
+        ("good", ["--iterations", "0"], 2, "--iterations"),
+        ("good", ["--resolution", "8"], 2, "--resolution"),
+        ("good", ["--tau", "nan"], 2, "--tau"),
+        ("good", ["--lambda2", "-1"], 2, "--lambda2"),
+    ],
+)
+def test_errors_exit_nonzero_with_one_line_and_no_output(tmp_path, kind, options, code, phrase):
+    if kind == "good":
+        shutil.copy(EXAMPLE, tmp_path / "good.ply")
+        source = tmp_path / "good.ply"
+    elif kind == "missing":
+        source = tmp_path / "missing.ply"
+    else:
+        source = _write(kind, tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = run("fit", source, "--out", tmp_path / "out", *options, cwd=tmp_path)
+    assert result.returncode == code, result.stderr
+    assert "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("edgerecon") and phrase.lower() in lines[0].lower()
+    assert sorted(p.name for p in tmp_path.iterdir()) == before, "an output or staging folder was left"
+
+
+def test_unparsable_option_value_is_an_argparse_error(tmp_path):
+    result = run("fit", EXAMPLE, "--out", tmp_path / "out", "--resolution", "abc", cwd=tmp_path)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert "invalid int value: 'abc'" in result.stderr.splitlines()[-1]
+    assert not (tmp_path / "out").exists()
+
+
+def test_failure_after_fitting_leaves_no_staging_folder(tmp_path, monkeypatch, capsys):
+    """In-process: the output path is an existing file, so writing fails after the fit."""
+    from core import network
+    from service import cli
+
+    monkeypatch.setattr(network._kernels, "compiled", False)
+    (tmp_path / "out").write_text("in the way")
+    tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
+    code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), *tiny])
+    assert code == 1
+    assert "edgerecon:" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert (tmp_path / "out").read_text() == "in the way"

@@ -1,0 +1,273 @@
+"""Jobs through real worker processes: end to end, cancel, crash (SIGKILL), two workers, expiry, time limit.
+
+Each fit here is tiny (a small network, a coarse grid) so the module stays within about two
+minutes on two shared cores; only ``test_two_workers_drain_four_jobs`` runs two fits at once.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import time
+
+import httpx
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+from test_service_fixtures import (  # noqa: F401 (fixtures)
+    ENDLESS,
+    SHARED_DATA,
+    TINY,
+    Service,
+    example_cloud,
+    ply_binary,
+    redis_server,
+    sphere,
+    wait_for,
+)
+
+from core.ply import read_points
+from service.settings import Settings
+from service.store import Store
+
+# Enough fitting for a recognisable surface in a few seconds.
+E2E = {"iterations": 150, "resolution": 48, "width": 64, "depth": 2, "batch_points": 512}
+# A coarse fit followed by a long extraction (a fine grid of a wider network).
+SLOW_EXTRACTION = {"iterations": 2, "resolution": 512, "width": 128, "depth": 2, "batch_points": 128}
+
+
+@pytest.fixture(scope="module")
+def svc(redis_server, tmp_path_factory):
+    """The API and one worker."""
+    service = Service(redis_server.url, tmp_path_factory.mktemp("jobs"))
+    service.start_api()
+    service.start_worker()
+    service.wait_workers(1)
+    yield service
+    service.stop()
+
+
+def _run_to_success(service: Service, cloud: bytes, params: dict, timeout: float = 180) -> tuple[dict, list[dict]]:
+    """Submit, poll until succeeded; return the final job and every status seen on the way."""
+    job_id = service.submit(cloud, **params)["id"]
+    seen = []
+
+    def finished():
+        seen.append(service.job(job_id))
+        assert seen[-1]["status"] in ("queued", "running", "succeeded"), seen[-1]
+        return seen[-1]["status"] == "succeeded"
+
+    wait_for(finished, timeout, 0.1, f"job {job_id} to succeed (logs: {service.directory})")
+    return seen[-1], seen
+
+
+def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trimesh.Trimesh:
+    """Download the three outputs, check their formats against the input; return the mesh."""
+    assert set(job["links"]) == {"self", "mesh.obj", "normals.json", "edges.json"}
+    with service.client() as client:
+        mesh_response, normals_response, edges_response = (
+            client.get(job["links"][name]) for name in ("mesh.obj", "normals.json", "edges.json")
+        )
+    for response in (mesh_response, normals_response, edges_response):
+        assert response.status_code == 200
+    assert mesh_response.headers["content-type"] == "model/obj"
+    assert normals_response.headers["content-type"] == "application/json"
+
+    mesh = trimesh.load(io.BytesIO(mesh_response.content), file_type="obj", process=False)
+    assert len(mesh.vertices) == job["result"]["vertices"] and len(mesh.faces) == job["result"]["faces"]
+
+    normals = np.asarray(normals_response.json()["normals"])
+    assert normals.shape == points.shape
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
+
+    edges = edges_response.json()
+    assert set(edges) == {"tau", "count", "indices", "points", "laplacian"}
+    assert edges["tau"] == job["params"]["tau"] and edges["count"] == job["result"]["edge_points"]
+    assert len(edges["indices"]) == len(edges["points"]) == len(edges["laplacian"]) == edges["count"]
+    if edges["count"]:
+        indices = np.asarray(edges["indices"])
+        assert 0 <= indices.min() and indices.max() < len(points)
+        assert np.allclose(np.asarray(edges["points"]), points[indices])
+        assert min(edges["laplacian"]) > edges["tau"]
+    return mesh
+
+
+def test_end_to_end_on_a_shared_shape(svc):
+    folder = SHARED_DATA / "cube"
+    if not folder.is_dir():
+        pytest.skip("../shared/data is absent (a fresh clone has no shared data)")
+    cloud = (folder / "points.ply").read_bytes()
+    job, seen = _run_to_success(svc, cloud, E2E)
+    fitting = [s["progress"] for s in seen if s["status"] == "running" and s["progress"]["stage"] == "fitting"]
+    assert fitting and fitting[-1]["total"] == E2E["iterations"] and "total" in fitting[-1]["losses"]
+    assert job["started_at"] and job["ended_at"] and job["error"] is None
+    assert job["result"]["timings"]["fit_seconds"] > 0
+
+    mesh = _download_and_check(svc, job, read_points(cloud))
+    truth = trimesh.load(folder / "gt.ply")
+    ours, theirs = mesh.sample(20_000), truth.sample(20_000)
+    chamfer = (cKDTree(theirs).query(ours)[0].mean() + cKDTree(ours).query(theirs)[0].mean()) / 2
+    assert chamfer < 0.04, chamfer  # the unit cube; a finished fit scores about 0.005
+
+
+def test_end_to_end_on_the_example_cloud(svc, example_cloud):
+    points = read_points(example_cloud)
+    job, _ = _run_to_success(svc, example_cloud, E2E)
+    mesh = _download_and_check(svc, job, points)
+    low, high = points.min(axis=0), points.max(axis=0)
+    margin = 0.1 * (high - low).max()
+    assert (mesh.vertices > low - margin).all() and (mesh.vertices < high + margin).all()
+    distances = cKDTree(mesh.sample(20_000)).query(points)[0]
+    assert distances.mean() < 0.03 * (high - low).max()
+
+
+def test_cancel_of_a_queued_job_means_it_never_runs(svc):
+    cloud = ply_binary(sphere(500))
+    busy = svc.submit(cloud, **ENDLESS)["id"]
+    svc.wait_fitting(busy)
+    waiting = svc.submit(cloud, **TINY)["id"]
+    with svc.client() as client:
+        assert client.delete(f"/v1/jobs/{waiting}").status_code == 204
+        assert client.get(f"/v1/jobs/{waiting}").json()["status"] == "canceled"
+        assert client.delete(f"/v1/jobs/{busy}").status_code == 204
+    after = svc.submit(cloud, **TINY)["id"]  # the worker is free again and takes the next job
+    svc.wait_status(after, {"succeeded"})
+    record = svc.record(waiting)
+    assert record["status"] == "canceled" and "started_at" not in record and "progress" not in record
+
+
+def test_cancel_of_a_running_job_stops_its_worker_within_5_s(svc):
+    cloud = ply_binary(sphere(500))
+    busy = svc.submit(cloud, **ENDLESS)["id"]
+    svc.wait_fitting(busy)
+    following = svc.submit(cloud, **TINY)["id"]  # queued behind it on the only worker
+    canceled_at = time.monotonic()
+    assert httpx.delete(f"{svc.url}/v1/jobs/{busy}").status_code == 204
+    job = svc.job(busy)
+    assert job["status"] == "canceled" and job["ended_at"]
+    svc.wait_status(following, {"running", "succeeded"}, timeout=5)
+    assert time.monotonic() - canceled_at < 5
+    stopped_at = svc.job(busy)["progress"]["iteration"]
+    svc.wait_status(following, {"succeeded"})
+    assert svc.job(busy)["progress"]["iteration"] == stopped_at and svc.job(busy)["status"] == "canceled"
+    assert httpx.get(f"{svc.url}/v1/jobs/{busy}/mesh.obj").status_code == 409
+
+
+def test_cancel_during_extraction_stops_within_5_s(svc):
+    cloud = ply_binary(sphere(500))
+    busy = svc.submit(cloud, **SLOW_EXTRACTION)["id"]
+    wait_for(lambda: (svc.job(busy)["progress"] or {}).get("stage") == "extracting", 60, 0.1, "extraction")
+    following = svc.submit(cloud, **TINY)["id"]
+    time.sleep(0.5)
+    canceled_at = time.monotonic()
+    assert httpx.delete(f"{svc.url}/v1/jobs/{busy}").status_code == 204
+    svc.wait_status(following, {"running", "succeeded"}, timeout=5)
+    assert time.monotonic() - canceled_at < 5
+    svc.wait_status(following, {"succeeded"})
+    assert svc.job(busy)["status"] == "canceled"
+
+
+def test_a_job_over_its_time_limit_fails_with_the_reason(svc, tmp_path):
+    strict = Service(svc.env["REDIS_URL"], tmp_path, run=svc.prefix, job_timeout=2)  # same queue, 2 s limit
+    strict.start_api()
+    try:
+        job_id = strict.submit(ply_binary(sphere(500)), **ENDLESS)["id"]
+        job = strict.wait_status(job_id, {"failed"}, timeout=30)
+        assert "time limit of 2 s" in job["error"]
+        assert job["ended_at"] and job["result"] is None
+    finally:
+        strict.stop()
+
+
+def test_reading_the_status_fails_a_job_whose_worker_died(redis_server, tmp_path):
+    service = Service(redis_server.url, tmp_path, sweep_interval=3600)  # no sweep: only the read
+    service.start_api()
+    try:
+        job_id = service.submit(ply_binary(sphere(300)), **TINY)["id"]
+        store = Store(service.redis, Settings(key_prefix=service.prefix, queue=service.queue))
+        assert store.start(job_id, "a-worker") is not None  # a worker took the job...
+        service.redis.delete(f"{service.prefix}:job:{job_id}:alive")  # ...and died: its heartbeat lapsed
+        assert service.record(job_id)["status"] == "running"
+        job = service.job(job_id)
+        assert job["status"] == "failed" and "stopped unexpectedly" in job["error"]
+    finally:
+        service.stop()
+
+
+def test_sigkill_of_a_worker_mid_fit_fails_the_job(redis_server, tmp_path):
+    service = Service(redis_server.url, tmp_path)
+    service.start_api()
+    worker = service.start_worker()
+    service.wait_workers(1)
+    try:
+        job_id = service.submit(ply_binary(sphere(500)), **ENDLESS)["id"]
+        service.wait_fitting(job_id)
+        os.kill(worker.pid, signal.SIGKILL)
+        killed_at = time.monotonic()
+        # Nobody reads the status meanwhile: the API's periodic sweep alone must fail the job.
+        wait_for(lambda: service.record(job_id)["status"] == "failed", 60, 0.2, "the sweep to fail the job")
+        assert time.monotonic() - killed_at < 60
+        job = service.job(job_id)
+        assert job["status"] == "failed" and "stopped unexpectedly" in job["error"]
+        service.wait_workers(0, timeout=10)  # the dead worker no longer counts
+
+        service.start_worker()  # a new worker does not run the failed job again, and works
+        service.wait_workers(1)
+        fresh = service.submit(ply_binary(sphere(300)), **TINY)["id"]
+        service.wait_status(fresh, {"succeeded"})
+        assert service.job(job_id)["status"] == "failed"
+    finally:
+        service.stop()
+
+
+@pytest.fixture(scope="module")
+def pair(redis_server, tmp_path_factory):
+    """The API and two workers; jobs expire 30 s after their last change (long enough for a job
+    to wait in the queue behind two others on a busy machine, short enough to watch one expire)."""
+    service = Service(redis_server.url, tmp_path_factory.mktemp("pair"), job_ttl=30)
+    service.start_api()
+    service.start_worker()
+    service.start_worker()
+    service.wait_workers(2)
+    yield service
+    service.stop()
+
+
+def test_two_workers_drain_four_jobs(pair):
+    cloud = ply_binary(sphere(500))
+    jobs = [pair.submit(cloud, **{**TINY, "iterations": 200, "seed": seed})["id"] for seed in range(4)]
+    done: dict[str, str] = {}  # job id -> the worker that ran it
+    most_running = 0
+
+    def all_done():
+        nonlocal most_running
+        running = 0
+        for job_id in set(jobs) - set(done):
+            status = pair.job(job_id)["status"]
+            assert status in ("queued", "running", "succeeded")
+            running += status == "running"
+            if status == "succeeded":
+                done[job_id] = pair.record(job_id)["worker"]
+        most_running = max(most_running, running)
+        return len(done) == len(jobs)
+
+    wait_for(all_done, 120, 0.1, "four jobs to succeed")
+    assert len(set(done.values())) == 2 and most_running == 2
+
+
+def test_results_expire_together_with_their_artifacts(pair):
+    job_id = pair.submit(ply_binary(sphere(500)), **TINY)["id"]
+    job = pair.wait_status(job_id, {"succeeded"})
+    for name in ("mesh.obj", "normals.json", "edges.json"):
+        assert httpx.get(pair.url + job["links"][name]).status_code == 200
+    parts = ("", ":points", ":mesh.obj", ":normals.json", ":edges.json")
+    keys = [f"{pair.prefix}:job:{job_id}{part}" for part in parts]
+    ttls = [pair.redis.ttl(key) for key in keys]
+    assert all(0 < ttl <= 30 for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls
+
+    wait_for(lambda: httpx.get(f"{pair.url}/v1/jobs/{job_id}").status_code == 404, 35, 0.2, "the job to expire")
+    for name in ("mesh.obj", "normals.json", "edges.json"):
+        assert httpx.get(f"{pair.url}/v1/jobs/{job_id}/{name}").status_code == 404
+    wait_for(lambda: not pair.redis.keys(f"{pair.prefix}:job:{job_id}*"), 5, 0.2, "every key of the job to expire")

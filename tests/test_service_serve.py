@@ -1,0 +1,105 @@
+"""``edgerecon serve`` and ``edgerecon worker`` as a user runs them: curl against the embedded
+service, then Ctrl-C (SIGINT), after which no process of it may be left."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import psutil
+import pytest
+import trimesh
+from test_service_fixtures import (  # noqa: F401 (fixtures)
+    ENDLESS,
+    ROOT,
+    TEST_ENV,
+    TINY,
+    clean_environ,
+    example_cloud,
+    free_port,
+    redis_server,
+    stop_process,
+    wait_for,
+)
+
+
+def _serve(tmp_path, workers: int, **env) -> tuple[subprocess.Popen, str]:
+    port = free_port()
+    command = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--workers", str(workers)]
+    log = open(tmp_path / "serve.log", "wb")
+    process = subprocess.Popen(command, env={**clean_environ(), **TEST_ENV, **env}, cwd=ROOT, stdout=log, stderr=log)
+    url = f"http://127.0.0.1:{port}"
+
+    def ready():
+        assert process.poll() is None, (tmp_path / "serve.log").read_text()
+        try:
+            return httpx.get(url + "/healthz", timeout=2).json().get("workers") == workers
+        except httpx.HTTPError:
+            return False
+
+    wait_for(ready, 60, 0.2, "edgerecon serve to be ready")
+    return process, url
+
+
+def _curl(*args: str) -> str:
+    return subprocess.run(["curl", "-sS", "--fail-with-body", *args], check=True, capture_output=True, text=True).stdout
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, example_cloud):
+    (tmp_path / "cube.ply").write_bytes(example_cloud)
+    process, url = _serve(tmp_path, workers=1)
+    try:
+        family = psutil.Process(process.pid).children(recursive=True)
+        names = " ".join(" ".join(child.cmdline()) for child in family)
+        assert "redis-server" in names and "uvicorn" in names and "worker" in names
+
+        fields = [arg for name, value in TINY.items() for arg in ("-F", f"{name}={value}")]
+        job = json.loads(_curl("-F", f"points=@{tmp_path / 'cube.ply'}", *fields, f"{url}/v1/jobs"))
+        wait_for(lambda: json.loads(_curl(f"{url}/v1/jobs/{job['id']}"))["status"] == "succeeded", 60, 0.2, "the job")
+        for name in ("mesh.obj", "normals.json", "edges.json"):
+            _curl("-o", str(tmp_path / name), f"{url}/v1/jobs/{job['id']}/{name}")
+        assert len(trimesh.load(tmp_path / "mesh.obj").vertices) > 0
+        assert len(json.loads((tmp_path / "normals.json").read_text())["normals"]) == 6000
+        assert "indices" in json.loads((tmp_path / "edges.json").read_text())
+
+        # Ctrl-C while a job runs: everything stops promptly, nothing is left behind.
+        fields = [arg for name, value in ENDLESS.items() for arg in ("-F", f"{name}={value}")]
+        running = json.loads(_curl("-F", f"points=@{tmp_path / 'cube.ply'}", *fields, f"{url}/v1/jobs"))
+        wait_for(lambda: json.loads(_curl(f"{url}/v1/jobs/{running['id']}"))["status"] == "running", 30, 0.1, "run")
+        family = psutil.Process(process.pid).children(recursive=True)
+        started = time.monotonic()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+        assert time.monotonic() - started < 15
+        assert [child.pid for child in family if child.is_running() and child.status() != psutil.STATUS_ZOMBIE] == []
+    finally:
+        stop_process(process, signal.SIGKILL)
+
+
+def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_server):
+    # This worker also runs its warm-up fit (with eager kernels, to stay cheap).
+    process, url = _serve(tmp_path, workers=1, REDIS_URL=redis_server.url, EDGERECON_KEY_PREFIX="serve-test",
+                          EDGERECON_QUEUE="serve-test", EDGERECON_WORKER_WARMUP="1")  # fmt: skip
+    try:
+        family = psutil.Process(process.pid).children(recursive=True)
+        assert not any("redis-server" in " ".join(child.cmdline()) for child in family)
+        assert redis_server.client().exists("serve-test:workers")
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+        assert not any(child.is_running() and child.status() != psutil.STATUS_ZOMBIE for child in family)
+    finally:
+        stop_process(process, signal.SIGKILL)
+        for key in redis_server.client().keys("serve-test:*"):
+            redis_server.client().delete(key)
+
+
+def test_worker_without_redis_url_says_so():
+    result = subprocess.run([sys.executable, "-m", "service.cli", "worker"], env={**clean_environ(), **TEST_ENV},
+                            cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert result.returncode == 2 and "REDIS_URL is not set" in result.stderr
