@@ -87,9 +87,11 @@ def step_loss(
 ) -> tuple[Tensor, dict[str, Tensor], Tensor]:
     """The loss of one step, its terms, and the batch's edge mask (DES).
 
-    ``batch`` holds input points, ``samples`` eikonal samples whose last ``len(batch) // 8`` are
-    uniform in the box (the free-space term looks at those). One pass of the network gives f and
-    ∇f everywhere and Δf at the batch; the eikonal term covers the batch and the samples.
+    ``batch`` holds input points, ``samples`` the eikonal samples (near the points, then uniform in
+    the box). One pass of the network gives f and ∇f everywhere and Δf at the batch; the eikonal
+    and free-space terms cover the samples (the eikonal term the batch too). The free-space term
+    needs the near samples: a membrane across a small hole (the L-bracket's) is met by a uniform
+    sample a few times per thousand steps, by the near samples every step.
     """
     n = len(batch)
     laplacian_rows = n if params.lambda2 > 0 else 0
@@ -103,9 +105,8 @@ def step_loss(
         )
         loss = loss + params.lambda2 * terms["laplacian"]
     if free_space is not None:
-        uniform = max(n // 8, 1)
-        distance, sign = free_space.distance_and_sign(samples[-uniform:])
-        terms["free_space"] = free_space_loss(f[-uniform:], distance, sign, free_space.margin)
+        distance, sign = free_space.distance_and_sign(samples)
+        terms["free_space"] = free_space_loss(f[n:], distance, sign, free_space.margin)
         loss = loss + params.lambda3 * terms["free_space"]
     return loss, terms, edges
 

@@ -19,21 +19,23 @@ class FitParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
-    iterations: int = Field(2000, ge=1, le=100_000, description="optimisation steps")
+    iterations: int = Field(900, ge=1, le=100_000, description="optimisation steps")
     lambda1: float = Field(0.1, ge=0, le=1000, description="weight of the eikonal term")
-    lambda2: float = Field(0.001, ge=0, le=1000, description="weight of the Laplacian term (0: plain IGR)")
-    tau: float = Field(20.0, gt=0, le=1e6, description="edge threshold on |Δf|, normalised frame")
+    lambda2: float = Field(
+        1e-4, ge=0, le=1000, description="weight of the Laplacian term (0: plain IGR; the paper: 0.001)"
+    )
+    tau: float = Field(30.0, gt=0, le=1e6, description="edge threshold on |Δf|, normalised frame (the paper: 20)")
     edge_sampling: bool = Field(
         True, description="dynamic edge sampling: leave points with |Δf| >= tau out of the Laplacian term"
     )
     laplacian_penalty: Literal["robust", "quadratic"] = Field(
-        "robust", description="penalty of Δf: the paper's quadratic, or robust (Geman-McClure, levels off at penalty_scale²)"
+        "robust", description="penalty of Δf: robust (Geman-McClure, levels off at penalty_scale²) or the paper's quadratic"
     )
     penalty_scale: float = Field(5.0, gt=0, le=1e4, description="|Δf| where the robust penalty levels off")
     lambda3: float = Field(
         1.0, ge=0, le=1000, description="weight of the free-space term, which keeps the surface out of empty space (0: off)"
     )
-    resolution: int = Field(256, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
+    resolution: int = Field(160, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")
     width: int = Field(256, ge=16, le=1024, description="hidden units per layer")
     depth: int = Field(4, ge=1, le=12, description="hidden layers")

@@ -18,6 +18,7 @@ import zlib
 import httpx
 import numpy as np
 import pytest
+from core.params import FitParams
 from test_service_fixtures import (  # noqa: F401 (fixtures)
     ROOT,
     TEST_ENV,
@@ -60,7 +61,7 @@ def test_submit_poll_cancel_a_queued_job(api):
     job = response.json()
     assert response.headers["location"] == f"/v1/jobs/{job['id']}"
     assert len(job["id"]) == 22 and job["status"] == "queued" and job["points"] == 500
-    assert job["params"]["tau"] == 15 and job["params"]["iterations"] == 2000  # defaults filled in
+    assert job["params"]["tau"] == 15 and job["params"]["iterations"] == FitParams().iterations  # defaults filled in
     assert job["links"] == {"self": f"/v1/jobs/{job['id']}"}
     assert job["created_at"] and job["expires_at"] and job["started_at"] is None
 
