@@ -1,0 +1,182 @@
+"""The losses, the samples and the fitting loop, down to the quality of a real fit.
+
+The quality tests fit a noisy synthetic cube (core.shapes, whose sharp edges are known) with a
+network and schedule small enough for a few seconds on two shared cores, and hold the result to
+bounds measured on it with a margin; with ../shared/data present, its cube is fitted with the
+shipped defaults and held to the fitting issue's acceptance bounds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from core.errors import Cancelled
+from core.fit import Progress, fit
+from core.losses import free_space_loss, laplacian_loss
+from core.metrics import edge_scores, evaluate_shape, normal_errors, surface_distances
+from core.params import FitParams
+from core.sampling import FreeSpace, eikonal_samples, local_scales
+from core.shapes import sample_shape
+
+SMALL = dict(width=64, depth=2, batch_points=256, resolution=32)
+
+
+# --- losses -----------------------------------------------------------------------------------
+
+
+def test_laplacian_loss_leaves_edge_points_out():
+    lap = torch.tensor([1.0, -2.0, 30.0, -25.0, 19.9], requires_grad=True)
+    loss, edges = laplacian_loss(lap, tau=20.0, edge_sampling=True, penalty="quadratic")
+    assert edges.tolist() == [False, False, True, True, False]
+    assert loss.item() == pytest.approx((1 + 4 + 19.9**2) / 3)  # a mean over the kept points
+    loss.backward()
+    assert lap.grad[2] == 0 and lap.grad[3] == 0 and lap.grad[0] == pytest.approx(2 * 1.0 / 3)
+
+
+def test_laplacian_loss_without_edge_sampling_uses_every_point():
+    lap = torch.tensor([1.0, -2.0, 30.0])
+    loss, edges = laplacian_loss(lap, tau=20.0, edge_sampling=False, penalty="quadratic")
+    assert not edges.any() and loss.item() == pytest.approx((1 + 4 + 900) / 3)
+
+
+def test_robust_penalty_is_quadratic_near_zero_and_levels_off():
+    lap = torch.tensor([0.01, 5.0, 1000.0])
+    each = [laplacian_loss(lap[i : i + 1], 1e6, False, "robust", scale=5.0)[0].item() for i in range(3)]
+    assert each[0] == pytest.approx(1e-4, rel=1e-4)
+    assert each[1] == pytest.approx(25 / 2)  # (Δf)² / (1 + (Δf/c)²) at Δf = c
+    assert 24.9 < each[2] < 25  # approaches c²
+
+
+def test_laplacian_loss_with_every_point_on_an_edge_is_zero_and_differentiable():
+    lap = torch.tensor([50.0, -60.0], requires_grad=True)
+    loss, edges = laplacian_loss(lap, tau=20.0, edge_sampling=True)
+    loss.backward()
+    assert loss.item() == 0 and edges.all() and (lap.grad == 0).all()
+
+
+def test_free_space_loss_is_a_hinge_on_distance_and_sign():
+    f = torch.tensor([0.3, -0.3, 0.05, -0.3, 0.0])
+    distance = torch.tensor([0.3, 0.3, 0.3, 0.3, 0.01])
+    sign = torch.tensor([1.0, -1.0, 0.0, 0.0, 1.0])
+    per_sample = torch.relu(distance - 0.1 - torch.tensor([0.3, 0.3, 0.05, 0.3, 0.0]))
+    assert free_space_loss(f, distance, sign, margin=0.1).item() == pytest.approx(per_sample.mean().item())
+    # outside (+1) with f negative is penalised in full
+    assert free_space_loss(torch.tensor([-0.3]), torch.tensor([0.3]), torch.tensor([1.0]), 0.1).item() == pytest.approx(0.5)
+
+
+# --- samples ------------------------------------------------------------------------------------
+
+
+def test_free_space_knows_inside_from_outside_of_a_closed_cloud():
+    points = sample_shape("cube", n_points=6000, seed=1).points
+    space = FreeSpace(points)
+    probes = torch.tensor([[0.0, 0.0, 0.0], [0.1, -0.2, 0.15], [0.58, 0.58, 0.58], [0.0, 0.0, 0.59], [0.5, 0.0, 0.0]])
+    distance, sign = space.distance_and_sign(probes)
+    assert sign.tolist() == [-1, -1, 1, 1, 0]  # the last is on a face: unknown
+    assert distance[0] == pytest.approx(0.5, abs=0.03) and distance[4] < 0.03
+    assert 0 < space.margin < 0.05
+
+
+def test_free_space_of_an_open_sheet_has_no_inside():
+    rng = np.random.default_rng(0)
+    sheet = np.c_[rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0, 0.002, 3000)]
+    space = FreeSpace(sheet)
+    assert (space.sign_grid >= 0).all()
+
+
+def test_eikonal_samples_are_near_points_then_uniform_in_the_box():
+    points = sample_shape("sphere", n_points=2000, seed=0).points
+    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
+    batch = torch.as_tensor(points, dtype=torch.float32)[:500]
+    samples = eikonal_samples(batch, scales[:500], 100, torch.Generator().manual_seed(0))
+    assert samples.shape == (600, 3)
+    moved = (samples[:500] - batch).norm(dim=1)
+    assert 0.3 < (moved / scales[:500]).mean() / np.sqrt(3) < 1.5  # Gaussian of the local scale
+    assert samples[500:].abs().max() <= 0.6 and samples[500:].std() > 0.25
+
+
+# --- the loop -------------------------------------------------------------------------------------
+
+
+def test_fit_is_deterministic_for_a_seed():
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    params = FitParams(iterations=5, seed=3, precision="float32", **SMALL)
+    first, again = fit(points, params), fit(points, params)
+    other = fit(points, params.model_copy(update={"seed": 4}))
+    for a, b, c in zip(first.parameters(), again.parameters(), other.parameters()):
+        assert torch.equal(a, b)
+    assert not all(torch.equal(a, c) for a, c in zip(first.parameters(), other.parameters()))
+
+
+def test_progress_reports_every_step_with_each_term():
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    seen: list[Progress] = []
+    fit(points, FitParams(iterations=4, **SMALL), progress=seen.append)
+    assert [p.iteration for p in seen] == [1, 2, 3, 4] and {p.total for p in seen} == {4}
+    assert set(seen[-1].losses) == {"total", "vanish", "eikonal", "laplacian", "free_space"}
+    assert all(np.isfinite(list(p.losses.values())).all() and 0 <= p.edge_share <= 1 for p in seen)
+    seen.clear()
+    fit(points, FitParams(iterations=2, lambda2=0, lambda3=0, **SMALL), progress=seen.append)
+    assert set(seen[-1].losses) == {"total", "vanish", "eikonal"}
+
+
+def test_cancel_stops_the_fit():
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    calls = []
+
+    def should_cancel() -> bool:
+        calls.append(1)
+        return len(calls) > 3
+
+    with pytest.raises(Cancelled):
+        fit(points, FitParams(iterations=100, **SMALL), should_cancel=should_cancel)
+    assert len(calls) == 4
+
+
+# --- quality ----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def fitted_cube():
+    """A noisy synthetic cube (8,000 points, noise 0.005) fitted with a small, short schedule."""
+    from core.reconstruct import reconstruct
+
+    shape = sample_shape("cube", n_points=8000, noise=0.005, seed=0)
+    params = FitParams(iterations=400, width=128, depth=3, batch_points=1024, resolution=96, seed=0)
+    return shape, reconstruct(shape.points, params)
+
+
+def test_small_fit_of_a_cube_is_close_watertight_and_outward(fitted_cube):
+    shape, result = fitted_cube
+    assert result.mesh.is_watertight and result.mesh.volume == pytest.approx(1.0, rel=0.05)
+    surface = surface_distances(result.mesh, shape.mesh, count=20_000)
+    # measured with seeds 0 and 1: d_C 0.0019-0.0020, d_H 0.034-0.036, normals 4.4-4.5° mean, 1.1-1.2° median
+    assert surface["chamfer_exact"] < 0.003 and surface["hausdorff_exact"] < 0.05, surface
+    normals = normal_errors(result.normals, shape.normals)
+    assert normals["normal_inward_share"] == 0, normals
+    assert normals["normal_mean_oriented"] < 6 and normals["normal_median_oriented"] < 2, normals
+
+
+def test_small_fit_of_a_cube_finds_its_edges(fitted_cube):
+    shape, result = fitted_cube
+    scores = edge_scores(result.edge_indices, shape.is_edge)
+    # measured: precision 0.43-0.44, recall 0.94-0.96 (the band of true edge points is 0.01 wide)
+    assert scores["edge_precision"] > 0.3 and scores["edge_recall"] > 0.75 and scores["edge_iou"] > 0.3, scores
+    assert result.edge_laplacian.min() > result.tau
+
+
+def test_shared_cube_with_the_defaults_meets_the_fitting_issue(shared_data):
+    """The acceptance run of the fitting issue: exact d_C within 0.02, watertight, outward normals,
+    edge points on the cube's edges (here held to much tighter bounds than that)."""
+    from core.ply import read_points
+    from core.reconstruct import reconstruct
+
+    points = read_points(shared_data / "cube" / "points.ply")
+    result = reconstruct(points, FitParams())
+    scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shared_data / "cube")
+    assert result.mesh.is_watertight
+    assert scores["chamfer_exact"] < 0.0025 and scores["hausdorff_exact"] < 0.03, scores
+    assert scores["normal_inward_share"] == 0 and scores["normal_mean_oriented"] < 5, scores
+    assert scores["edge_precision"] > 0.6 and scores["ecd"] < 0.02, scores
