@@ -1,0 +1,332 @@
+"""Benchmark the fit: quality and time per shape and configuration, the training step's speed,
+and worker throughput. Prints markdown tables and writes them to docs/benchmarks.md.
+
+    .venv/bin/python bench/run.py                                  # everything (about an hour)
+    .venv/bin/python bench/run.py --only quality --configs default --clouds cube
+    .venv/bin/python bench/run.py --only steps                     # one training step, side by side
+    .venv/bin/python bench/run.py --only throughput                # 1 worker x 2 threads vs 2 x 1
+
+Quality: every (configuration, cloud) pair is fitted in a fresh process (so its peak memory is
+its own), then scored with core.metrics against the ground truth in ../shared/data (see that
+folder's README). Configurations differ only in the loss: ``igr`` (no Laplacian term), ``lap``
+(the paper's quadratic Laplacian on every point), ``lap+des`` (the paper's method: quadratic,
+dynamic edge sampling), ``default`` (what edgerecon ships). All use the shipped schedule,
+network and free-space term, so the differences are the Laplacian's.
+
+Steps: one training step (``core.fit.step_loss``, backward, Adam) with and without the
+Laplacian term, alternated in one run so that the machine's load hits both; medians, the
+step's matrix-product GFLOP/s, and this machine's float32 and bfloat16 matrix-product peaks
+measured in the same run.
+
+Throughput: the same four fits run by one process with two torch threads, one after another,
+and by two processes with one thread each, side by side: jobs per hour for each worker layout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DATA = ROOT.parent / "shared" / "data"
+CONFIGS = {
+    "igr": {"lambda2": 0.0},
+    "lap": {"laplacian_penalty": "quadratic", "lambda2": 0.001, "tau": 20.0, "edge_sampling": False},
+    "lap+des": {"laplacian_penalty": "quadratic", "lambda2": 0.001, "tau": 20.0, "edge_sampling": True},
+    "default": {},
+}
+CLOUDS = [
+    "cube",
+    "box_hole",
+    "l_bracket",
+    "sphere",
+    "box_hole/points_4096.ply",
+    "box_hole/points_noise010.ply",
+]
+COLUMNS = [
+    ("d_C", "chamfer", "{:.4f}"),
+    ("d_C exact", "chamfer_exact", "{:.4f}"),
+    ("d_H exact", "hausdorff_exact", "{:.4f}"),
+    ("normal mean", "normal_mean_oriented", "{:.2f}°"),
+    ("normal median", "normal_median_oriented", "{:.2f}°"),
+    ("flipped", "normal_inward_share", "{:.2%}"),
+    ("edge P", "edge_precision", "{:.2f}"),
+    ("edge R", "edge_recall", "{:.2f}"),
+    ("edge IoU", "edge_iou", "{:.2f}"),
+    ("ECD", "ecd", "{:.4f}"),
+    ("false edges", "edge_false_share", "{:.2%}"),
+    ("fit s", "fit_seconds", "{:.1f}"),
+    ("extract s", "extract_seconds", "{:.1f}"),
+    ("peak MB", "peak_mb", "{:.0f}"),
+]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--only", choices=["quality", "steps", "throughput"], action="append")
+    parser.add_argument("--configs", default=",".join(CONFIGS), help="comma-separated, from: " + ", ".join(CONFIGS))
+    parser.add_argument("--clouds", default=",".join(CLOUDS), help="shape or shape/points file, comma-separated")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a FitParams field")
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks.md")
+    parser.add_argument("--one", nargs=2, metavar=("CONFIG", "CLOUD"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    overrides = dict(item.split("=", 1) for item in args.set)
+    if args.one:
+        print(json.dumps(run_one(args.one[0], args.one[1], args.data, overrides)))
+        return 0
+    if not args.data.is_dir():
+        print(f"bench: {args.data} is missing (the sample shapes of ../shared/data)", file=sys.stderr)
+        return 2
+
+    parts = args.only or ["quality", "steps", "throughput"]
+    command = "python bench/run.py " + " ".join(sys.argv[1:])
+    sections = [f"Made by `{command.strip()}` on {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {machine()}."]
+    if "quality" in parts:
+        sections.append(quality(args.configs.split(","), args.clouds.split(","), args.data, overrides))
+    if "steps" in parts:
+        sections.append(steps(overrides))
+    if "throughput" in parts:
+        sections.append(throughput(args.data, overrides))
+    report = "\n\n".join(sections) + "\n"
+    print(report)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(report)
+    print(f"written to {args.out}", file=sys.stderr)
+    return 0
+
+
+def machine() -> str:
+    import torch
+
+    return f"{os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads, Python {platform.python_version()}"
+
+
+# --- quality ---------------------------------------------------------------------------------
+
+
+def params_for(config: str, overrides: dict):
+    from core.params import FitParams
+
+    return FitParams(**{**CONFIGS[config], **overrides})
+
+
+def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
+    """Fit one cloud with one configuration in this process; its scores, times and peak memory."""
+    from core.metrics import evaluate_shape
+    from core.ply import read_points
+    from core.reconstruct import reconstruct
+
+    shape, _, points_file = cloud.partition("/")
+    points_file = points_file or "points.ply"
+    points = read_points(data / shape / points_file)
+    result = reconstruct(points, params_for(config, overrides))
+    scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, data / shape, points_file=points_file)
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+
+
+def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) -> str:
+    rows = {}
+    for config in configs:
+        for cloud in clouds:
+            print(f"fitting {cloud} with {config}...", file=sys.stderr, flush=True)
+            command = [sys.executable, __file__, "--one", config, cloud, "--data", str(data)]
+            command += [f"--set={name}={value}" for name, value in overrides.items()]
+            done = subprocess.run(command, capture_output=True, text=True, check=False)
+            if done.returncode != 0:
+                print(done.stderr[-2000:], file=sys.stderr)
+                rows[config, cloud] = None
+                continue
+            rows[config, cloud] = json.loads(done.stdout.strip().splitlines()[-1])
+            print("  " + ", ".join(f"{name} {fmt.format(rows[config, cloud][key])}" for name, key, fmt in COLUMNS[:10]), file=sys.stderr)
+    params = params_for("default", overrides)
+    lines = [
+        "## Quality and time per shape",
+        "",
+        f"Shipped defaults: {params.model_dump()}.",
+        "Configurations: " + "; ".join(f"`{name}` = {CONFIGS[name] or 'the defaults'}" for name in configs) + ".",
+        "",
+        table(["cloud", "config"], [((cloud, config), rows[config, cloud]) for cloud in clouds for config in configs]),
+        "",
+        "## Averages",
+        "",
+        "Surface and normal scores over the clouds with 16,384 points and noise 0.005 (the first four), edge "
+        "scores over those of them with sharp edges, as the data's README defines the averages.",
+        "",
+        table(["config"], [((config,), average([rows[config, c] for c in clouds if "/" not in c])) for config in configs]),
+    ]
+    return "\n".join(lines)
+
+
+def average(results: list[dict | None]) -> dict | None:
+    results = [r for r in results if r]
+    if not results:
+        return None
+    mean = {}
+    for _, key, _ in COLUMNS:
+        values = [r[key] for r in results if r.get(key) is not None and r[key] == r[key]]  # NaN: smooth shapes
+        mean[key] = statistics.fmean(values) if values else float("nan")
+    return mean
+
+
+def table(heads: list[str], rows: list[tuple]) -> str:
+    lines = ["| " + " | ".join(heads + [name for name, _, _ in COLUMNS]) + " |"]
+    lines.append("|" + "---|" * (len(heads) + len(COLUMNS)))
+    for keys, result in rows:
+        cells = [fmt.format(result[key]) if result and key in result and result[key] == result[key] else "–" for _, key, fmt in COLUMNS]
+        lines.append("| " + " | ".join(list(keys) + cells) + " |")
+    return "\n".join(lines)
+
+
+# --- one training step -------------------------------------------------------------------------
+
+
+def steps(overrides: dict, repeats: int = 30) -> str:
+    import numpy as np
+    import torch
+
+    from core.fit import matmul_dtype_for, step_loss
+    from core.network import ImplicitNetwork
+    from core.sampling import FreeSpace, eikonal_samples, local_scales
+    from core.shapes import sample_shape
+
+    params = params_for("default", overrides)
+    points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
+    cloud = torch.as_tensor(points, dtype=torch.float32)
+    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
+    free_space = FreeSpace(points)
+    generator = torch.Generator().manual_seed(0)
+    n = params.batch_points
+    index = torch.randint(len(cloud), (n,), generator=generator)
+    batch = cloud[index]
+    samples = eikonal_samples(batch[: n // 2], scales[index[: n // 2]], n // 8, generator)
+    variants = {
+        "eikonal only (λ2 = 0)": params.model_copy(update={"lambda2": 0.0}),
+        "with the Laplacian term": params,
+    }
+    dtypes = {"float32": None, "bfloat16": torch.bfloat16} if matmul_dtype_for(params.precision) else {"float32": None}
+    models = {}
+    times = {(name, dtype): [] for name in variants for dtype in dtypes}
+    for _ in range(repeats + 3):
+        for (name, dtype_name), samples_ms in times.items():
+            model = models.setdefault((name, dtype_name), ImplicitNetwork(params.width, params.depth, params.beta))
+            optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
+            started = time.perf_counter()
+            loss, _, _ = step_loss(model, batch, samples, variants[name], free_space, dtypes[dtype_name])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            samples_ms.append((time.perf_counter() - started) * 1000)
+    peak = {name: matmul_peak(dtype) for name, dtype in (("float32", torch.float32), ("bfloat16", torch.bfloat16))}
+    rows_all = len(batch) + len(samples)
+    lines = [
+        "## One training step",
+        "",
+        f"{params.batch_points} input points, {len(samples)} eikonal samples, width {params.width}, depth {params.depth}, "
+        f"{torch.get_num_threads()} threads; median of {repeats} alternated runs after 3 warm-ups. GFLOP/s counts the "
+        "matrix products of the forward and backward passes (the element-wise work is not counted). Peaks: "
+        + ", ".join(f"{name} {value:.0f} GFLOP/s" for name, value in peak.items())
+        + " (a 16,384 x 256 by 256 x 256 product, median of 30).",
+        "",
+        "| step | matmul dtype | median ms | vs eikonal only | GFLOP/s | of the float32 peak | of the same dtype's peak |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for dtype_name in dtypes:
+        base = statistics.median(times["eikonal only (λ2 = 0)", dtype_name][3:])
+        for name, variant in variants.items():
+            ms = statistics.median(times[name, dtype_name][3:])
+            laplacian_rows = len(batch) if variant.lambda2 > 0 else 0
+            flops = step_flops(rows_all, laplacian_rows, params.width, params.depth)
+            gflops = flops / ms / 1e6
+            lines.append(
+                f"| {name} | {dtype_name} | {ms:.1f} | {ms / base:.2f}x | {gflops:.0f} | {gflops / peak['float32']:.0%} | "
+                f"{gflops / peak[dtype_name]:.0%} |"
+            )
+    reference = ImplicitNetwork(params.width, params.depth, params.beta)
+    x = torch.cat([batch, samples])
+    started = time.perf_counter()
+    for _ in range(3):
+        from core.network import derivatives_autograd
+
+        f, grad, lap = derivatives_autograd(reference, x[: len(batch)])
+        (f.abs().mean() + (grad.norm(dim=1) - 1).square().mean() + lap.square().mean()).backward()
+    autograd_ms = (time.perf_counter() - started) / 3 * 1000
+    lines += ["", f"For comparison, nested autograd (the tests' reference) takes {autograd_ms:.0f} ms for the same "
+              f"Laplacian on the {len(batch)} input points alone (float32, mean of 3)."]
+    return "\n".join(lines)
+
+
+def step_flops(rows: int, laplacian_rows: int, width: int, depth: int) -> float:
+    """Multiply-adds x 2 of one step's matrix products: forward, and backward (input and weights)."""
+    stacked = 4 * rows + laplacian_rows  # [f; grad (3 columns); Laplacian] rows per layer
+    hidden = (depth - 1) * stacked * width * width * 2 * 3
+    first = rows * 3 * width * 2 * 2
+    last = stacked * width * 2 * 3
+    return hidden + first + last
+
+
+def matmul_peak(dtype) -> float:
+    import torch
+
+    a = torch.randn(16_384, 256).to(dtype)
+    b = torch.randn(256, 256).to(dtype)
+    times = []
+    for _ in range(33):
+        started = time.perf_counter()
+        a @ b
+        times.append(time.perf_counter() - started)
+    return 2 * 16_384 * 256 * 256 / statistics.median(times[3:]) / 1e9
+
+
+# --- worker throughput ---------------------------------------------------------------------------
+
+
+def throughput(data: Path, overrides: dict, jobs: int = 4) -> str:
+    cloud = data / "box_hole" / "points.ply"
+    script = (
+        "import sys, torch; torch.set_num_threads(int(sys.argv[1]));"
+        "from core.ply import read_points; from core.params import FitParams; from core.reconstruct import reconstruct;"
+        f"params = FitParams(**{overrides!r}); points = read_points({str(cloud)!r});"
+        "[reconstruct(points, params) for _ in range(int(sys.argv[2]))]"
+    )
+
+    def run(processes: int, threads: int) -> float:
+        started = time.perf_counter()
+        children = [
+            subprocess.Popen([sys.executable, "-c", script, str(threads), str(jobs // processes)], cwd=ROOT)
+            for _ in range(processes)
+        ]
+        for child in children:
+            child.wait()
+        return time.perf_counter() - started
+
+    run(1, 2)  # warms torch.compile's cache on disk for both layouts
+    layouts = {"1 worker x 2 threads": run(1, 2), "2 workers x 1 thread": run(2, 1)}
+    lines = [
+        "## Worker throughput",
+        "",
+        f"{jobs} default fits of box_hole (16,384 points), started together; jobs per hour on this machine.",
+        "",
+        "| layout | seconds for all | seconds per job (latency) | jobs per hour |",
+        "|---|---|---|---|",
+    ]
+    for name, seconds in layouts.items():
+        processes = 1 if name.startswith("1") else 2
+        lines.append(f"| {name} | {seconds:.0f} | {seconds / (jobs / processes):.0f} | {jobs / seconds * 3600:.0f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
