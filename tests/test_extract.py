@@ -26,12 +26,7 @@ UNIT_LOW, UNIT_HIGH = np.full(3, -0.5), np.full(3, 0.5)
 BOXES = {"sphere": 0.5, "blob": 0.5, "fitted": 0.6}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _sphere() -> ImplicitNetwork:

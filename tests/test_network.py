@@ -23,12 +23,7 @@ SUBSET = 17
 LAPLACIAN_ROWS = {"all": None, "subset": SUBSET, "none": 0}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(params=["eager", "compiled"])
