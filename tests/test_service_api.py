@@ -6,6 +6,7 @@ job stays queued (the tests with workers are in test_service_jobs.py).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -254,7 +255,8 @@ def _raw_request(url: str, head: bytes, body_chunks) -> tuple[int, dict, int]:
             if not chunk:
                 break
             answer += chunk
-        connection.shutdown(socket.SHUT_RDWR)
+        with contextlib.suppress(OSError):  # the server may have closed the connection first
+            connection.shutdown(socket.SHUT_RDWR)
         sender.join(10)
     head_part, _, body = answer.partition(b"\r\n\r\n")
     return int(head_part.split()[1]), json.loads(body), sent
