@@ -195,12 +195,11 @@ def table(heads: list[str], rows: list[tuple]) -> str:
 
 
 def steps(overrides: dict, repeats: int = 30) -> str:
-    import numpy as np
     import torch
 
     from core.fit import matmul_dtype_for, step_loss
     from core.network import ImplicitNetwork
-    from core.sampling import FreeSpace, eikonal_samples, local_scales
+    from core.sampling import FreeSpace, draw_batch, local_scales
     from core.shapes import sample_shape
 
     params = params_for("default", overrides)
@@ -208,11 +207,7 @@ def steps(overrides: dict, repeats: int = 30) -> str:
     cloud = torch.as_tensor(points, dtype=torch.float32)
     scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
     free_space = FreeSpace(points)
-    generator = torch.Generator().manual_seed(0)
-    n = params.batch_points
-    index = torch.randint(len(cloud), (n,), generator=generator)
-    batch = cloud[index]
-    samples = eikonal_samples(batch[: n // 2], scales[index[: n // 2]], n // 8, generator)
+    batch, samples = draw_batch(cloud, scales, params.batch_points, torch.Generator().manual_seed(0))
     variants = {
         "eikonal only (λ2 = 0)": params.model_copy(update={"lambda2": 0.0}),
         "with the Laplacian term": params,

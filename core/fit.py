@@ -15,7 +15,7 @@ from core.errors import CancelCheck, check_cancel
 from core.losses import eikonal_loss, free_space_loss, laplacian_loss, vanish_loss
 from core.network import ImplicitNetwork
 from core.params import FitParams
-from core.sampling import FreeSpace, eikonal_samples, local_scales
+from core.sampling import FreeSpace, draw_batch, local_scales
 
 
 @dataclass
@@ -40,8 +40,7 @@ def fit(
 ) -> ImplicitNetwork:
     """Fit f to ``points`` (N, 3), already in the unit frame; return the trained network.
 
-    Each step draws ``batch_points`` input points, eikonal samples near half of them and one in
-    eight uniformly in the box, computes ``step_loss`` and takes one Adam step, with the learning
+    Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``), computes ``step_loss`` and takes one Adam step, with the learning
     rate decaying geometrically. ``should_cancel`` is polled every step; when it returns True,
     ``Cancelled`` is raised.
     """
@@ -60,10 +59,8 @@ def fit(
 
     for iteration in range(1, params.iterations + 1):
         check_cancel(should_cancel)
-        index = torch.randint(len(cloud), (batch_size,), generator=generator)
-        near = index[: max(batch_size // 2, 1)]
-        samples = eikonal_samples(cloud[near], scales[near], max(batch_size // 8, 1), generator)
-        loss, terms, edges = step_loss(model, cloud[index], samples, params, free_space, matmul_dtype)
+        batch, samples = draw_batch(cloud, scales, batch_size, generator)
+        loss, terms, edges = step_loss(model, batch, samples, params, free_space, matmul_dtype)
 
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

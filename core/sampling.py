@@ -27,6 +27,14 @@ def eikonal_samples(batch: Tensor, scales: Tensor, n_uniform: int, generator: to
     return torch.cat([near, box])
 
 
+def draw_batch(cloud: Tensor, scales: Tensor, size: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """One step's inputs: ``size`` input points drawn at random, and their eikonal samples (near
+    the first half of them, then ``size // 8`` uniform in the box)."""
+    index = torch.randint(len(cloud), (size,), generator=generator)
+    near = index[: max(size // 2, 1)]
+    return cloud[index], eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator)
+
+
 class FreeSpace:
     """What the cloud says about empty space, for the free-space term.
 

@@ -27,7 +27,6 @@ import os
 import sys
 import threading
 
-import numpy as np
 from redis.exceptions import RedisError
 from rq.serializers import JSONSerializer
 from rq.worker import SimpleWorker
@@ -107,22 +106,15 @@ def prepare_torch(settings: Settings) -> None:
     from core.errors import EdgereconError
     from core.params import FitParams
     from core.reconstruct import reconstruct
+    from core.shapes import sample_shape
 
     if settings.worker_warmup:
         log.info("warming up (torch.compile of the network's kernels)...")
         try:
-            reconstruct(_sphere(400), FitParams(iterations=2, resolution=32))
+            reconstruct(sample_shape("sphere", n_points=400).points, FitParams(iterations=2, resolution=32))
         except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
             log.info("warm-up fit: %s", error)
     log.info("torch ready: %d thread(s)", torch.get_num_threads())
-
-
-def _sphere(n: int) -> np.ndarray:
-    """``n`` points spread evenly on the unit sphere (a Fibonacci lattice)."""
-    index = np.arange(n) + 0.5
-    polar = np.arccos(1 - 2 * index / n)
-    azimuth = np.pi * (1 + 5**0.5) * index
-    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
 
 
 if __name__ == "__main__":
