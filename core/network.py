@@ -191,7 +191,9 @@ def _hidden_activation_backward(grad: Tensor, out: Tensor, u: Tensor, n: int, m:
         s_m, t_m = s[:m], t[:m]
         jac_m = jac_u[:, :m]
         lap_u = out[4 * n :].to(u.dtype)
-        grad_u = torch.cat([grad_u[:m] + grad_lap * (t_m * lap_u + t_m * (1 - 2 * s_m) * jac_m.square().sum(0)), grad_u[m:]])
+        grad_u = torch.cat(
+            [grad_u[:m] + grad_lap * (t_m * lap_u + t_m * (1 - 2 * s_m) * jac_m.square().sum(0)), grad_u[m:]]
+        )
         grad_jac_u = torch.cat([grad_jac_u[:, :m] + 2 * grad_lap * t_m * jac_m, grad_jac_u[:, m:]], dim=1)
     blocks = [grad_u, grad_jac_u.view(3 * n, -1)] + ([grad_lap * s_m] if m else [])
     return torch.cat(blocks).to(out.dtype), grad_u.sum(0)

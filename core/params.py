@@ -33,11 +33,15 @@ class FitParams(BaseModel):
         True, description="dynamic edge sampling: leave points with |Δf| >= tau out of the Laplacian term"
     )
     laplacian_penalty: Literal["robust", "quadratic"] = Field(
-        "robust", description="penalty of Δf: robust (Geman-McClure, levels off at penalty_scale²) or the paper's quadratic"
+        "robust",
+        description="penalty of Δf: robust (Geman-McClure, levels off at penalty_scale²) or the paper's quadratic",
     )
     penalty_scale: float = Field(5.0, gt=0, le=1e4, description="|Δf| where the robust penalty levels off")
     lambda3: float = Field(
-        1.0, ge=0, le=1000, description="weight of the free-space term, which keeps the surface out of empty space (0: off)"
+        1.0,
+        ge=0,
+        le=1000,
+        description="weight of the free-space term, which keeps the surface out of empty space (0: off)",
     )
     resolution: int = Field(160, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")

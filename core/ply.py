@@ -49,9 +49,7 @@ def read_points(
     return check_points(points, min_points=min_points, max_points=max_points)
 
 
-def check_points(
-    points: np.ndarray, *, min_points: int = MIN_POINTS, max_points: int = MAX_POINTS
-) -> np.ndarray:
+def check_points(points: np.ndarray, *, min_points: int = MIN_POINTS, max_points: int = MAX_POINTS) -> np.ndarray:
     """Validate an (N, 3) array of positions and return it as float64.
 
     Rejects non-finite coordinates, fewer than ``min_points`` or more than ``max_points``
@@ -63,9 +61,7 @@ def check_points(
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
-        raise PointCloudError(
-            f"{int(bad.sum())} points have NaN or infinite coordinates (the first is vertex {first})"
-        )
+        raise PointCloudError(f"{int(bad.sum())} points have NaN or infinite coordinates (the first is vertex {first})")
     if len(points) < min_points:
         raise PointCloudError(f"the cloud has {len(points)} points; at least {min_points} are needed")
     if len(points) > max_points:
@@ -151,7 +147,9 @@ def _smallest_row_bytes(element, byte_order: str) -> int:
     from plyfile import PlyListProperty
 
     sizes = [
-        np.dtype(prop.list_dtype(byte_order)[0] if isinstance(prop, PlyListProperty) else prop.dtype(byte_order)).itemsize
+        np.dtype(
+            prop.list_dtype(byte_order)[0] if isinstance(prop, PlyListProperty) else prop.dtype(byte_order)
+        ).itemsize
         for prop in element.properties
     ]
     return sum(sizes)

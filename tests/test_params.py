@@ -44,7 +44,12 @@ def test_shipped_defaults():
 
 def test_the_papers_variant_is_selectable():
     params = FitParams(lambda2=0.001, tau=20, laplacian_penalty="quadratic")
-    assert (params.lambda2, params.tau, params.laplacian_penalty, params.edge_sampling) == (0.001, 20.0, "quadratic", True)
+    assert (params.lambda2, params.tau, params.laplacian_penalty, params.edge_sampling) == (
+        0.001,
+        20.0,
+        "quadratic",
+        True,
+    )
 
 
 def test_every_default_is_valid_and_documented():

@@ -183,14 +183,28 @@ def test_missing_or_non_file_points_get_422(api, nothing_stored):
 def test_unknown_job_ids_get_404(api):
     unknown = "A" * 22
     with api.client() as client:
-        for method, path in [("GET", ""), ("DELETE", ""), ("GET", "/mesh.obj"), ("GET", "/normals.json"),
-                             ("GET", "/edges.json")]:  # fmt: skip
+        for method, path in [
+            ("GET", ""),
+            ("DELETE", ""),
+            ("GET", "/mesh.obj"),
+            ("GET", "/normals.json"),
+            ("GET", "/edges.json"),
+        ]:
             response = client.request(method, f"/v1/jobs/{unknown}{path}")
             assert response.status_code == 404 and "no job" in response.json()["detail"]
 
 
-MALFORMED_IDS = ["abc", "A" * 21, "A" * 23, "A" * 21 + "!", "A" * 20 + "%2F.", "..%2F..%2Fetc%2Fpasswd",
-                 "A" * 21 + "%2A", "%E2%9C%93" * 8, "x" * 5000]  # fmt: skip
+MALFORMED_IDS = [
+    "abc",
+    "A" * 21,
+    "A" * 23,
+    "A" * 21 + "!",
+    "A" * 20 + "%2F.",
+    "..%2F..%2Fetc%2Fpasswd",
+    "A" * 21 + "%2A",
+    "%E2%9C%93" * 8,
+    "x" * 5000,
+]
 
 
 def test_malformed_job_ids_get_404_without_touching_redis(api):
@@ -311,8 +325,13 @@ def test_api_key_guards_every_v1_route(redis_server, tmp_path):
     service.start_api()
     try:
         cloud = {"points": ("s.ply", ply_binary(sphere(300)))}
-        routes = [("POST", "/v1/jobs"), ("GET", "/v1/jobs/" + "A" * 22), ("DELETE", "/v1/jobs/" + "A" * 22),
-                  ("GET", "/v1/jobs/" + "A" * 22 + "/mesh.obj"), ("GET", "/v1/nothing")]  # fmt: skip
+        routes = [
+            ("POST", "/v1/jobs"),
+            ("GET", "/v1/jobs/" + "A" * 22),
+            ("DELETE", "/v1/jobs/" + "A" * 22),
+            ("GET", "/v1/jobs/" + "A" * 22 + "/mesh.obj"),
+            ("GET", "/v1/nothing"),
+        ]
         with service.client() as client:
             for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic s3cret"}):
                 for method, path in routes:
@@ -377,9 +396,15 @@ with TestClient(app) as client:
     assert client.get("/healthz").status_code == 200
 print("torch" in sys.modules)
 """
-    env = {**clean_environ(), **TEST_ENV, "REDIS_URL": api.env["REDIS_URL"], "EDGERECON_KEY_PREFIX": api.prefix,
-           "EDGERECON_QUEUE": api.queue}  # fmt: skip
-    result = subprocess.run([sys.executable, "-W", "ignore", "-c", script], env=env, cwd=ROOT,
-                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    env = {
+        **clean_environ(),
+        **TEST_ENV,
+        "REDIS_URL": api.env["REDIS_URL"],
+        "EDGERECON_KEY_PREFIX": api.prefix,
+        "EDGERECON_QUEUE": api.queue,
+    }
+    result = subprocess.run(
+        [sys.executable, "-W", "ignore", "-c", script], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"

@@ -116,8 +116,19 @@ class RedisServer:
         self.url = f"redis://127.0.0.1:{self.port}/0"
 
     def start(self) -> "RedisServer":
-        command = [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
-                   "--appendonly", "no", "--dir", str(self.directory)]  # fmt: skip
+        command = [
+            REDIS_SERVER,
+            "--port",
+            str(self.port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--dir",
+            str(self.directory),
+        ]
         self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
         wait_for(self._answers, 10, 0.05, "redis-server to start")
         return self
@@ -144,8 +155,13 @@ class Service:
         self.directory = directory
         run = run or f"test-{uuid.uuid4().hex[:12]}"
         self.prefix, self.queue = run, run
-        self.env = {**clean_environ(), **TEST_ENV, "REDIS_URL": redis_url,
-                    "EDGERECON_KEY_PREFIX": self.prefix, "EDGERECON_QUEUE": self.queue}  # fmt: skip
+        self.env = {
+            **clean_environ(),
+            **TEST_ENV,
+            "REDIS_URL": redis_url,
+            "EDGERECON_KEY_PREFIX": self.prefix,
+            "EDGERECON_QUEUE": self.queue,
+        }
         self.env.update({f"EDGERECON_{name.upper()}": str(value) for name, value in settings.items()})
         self.redis = Redis.from_url(redis_url)
         self.processes: list[subprocess.Popen] = []
@@ -161,8 +177,17 @@ class Service:
 
     def start_api(self, **extra_env) -> str:
         port = free_port()
-        command = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(port),
-                   "--no-access-log"]  # fmt: skip
+        command = [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            "service.app:app",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--no-access-log",
+        ]
         self.api = self._spawn(command, f"api-{port}.log", {**self.env, **extra_env})
         self.url = f"http://127.0.0.1:{port}"
         wait_for(lambda: self._health() is not None, 20, 0.1, "the API to start")

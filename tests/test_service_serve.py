@@ -84,8 +84,14 @@ def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, ex
 
 def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_server):
     # This worker also runs its warm-up fit (with eager kernels, to stay cheap).
-    process, url = _serve(tmp_path, workers=1, REDIS_URL=redis_server.url, EDGERECON_KEY_PREFIX="serve-test",
-                          EDGERECON_QUEUE="serve-test", EDGERECON_WORKER_WARMUP="1")  # fmt: skip
+    process, url = _serve(
+        tmp_path,
+        workers=1,
+        REDIS_URL=redis_server.url,
+        EDGERECON_KEY_PREFIX="serve-test",
+        EDGERECON_QUEUE="serve-test",
+        EDGERECON_WORKER_WARMUP="1",
+    )
     try:
         family = psutil.Process(process.pid).children(recursive=True)
         assert not any("redis-server" in " ".join(child.cmdline()) for child in family)
@@ -100,6 +106,12 @@ def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_s
 
 
 def test_worker_without_redis_url_says_so():
-    result = subprocess.run([sys.executable, "-m", "service.cli", "worker"], env={**clean_environ(), **TEST_ENV},
-                            cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+    result = subprocess.run(
+        [sys.executable, "-m", "service.cli", "worker"],
+        env={**clean_environ(), **TEST_ENV},
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2 and "REDIS_URL is not set" in result.stderr
