@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import ctypes
-from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Callable
 
 import numpy as np
 import torch
@@ -15,21 +12,8 @@ from core.errors import CancelCheck, check_cancel
 from core.losses import eikonal_loss, free_space_loss, laplacian_loss, vanish_loss
 from core.network import ImplicitNetwork
 from core.params import FitParams
+from core.progress import Progress, ProgressCallback, Stage
 from core.sampling import FreeSpace, draw_batch, local_scales
-
-
-@dataclass
-class Progress:
-    """What a progress callback receives after each step."""
-
-    stage: str
-    iteration: int
-    total: int
-    losses: dict[str, float] = field(default_factory=dict)
-    edge_share: float = 0.0
-
-
-ProgressCallback = Callable[[Progress], None]
 
 
 def fit(
@@ -40,13 +24,13 @@ def fit(
 ) -> ImplicitNetwork:
     """Fit f to ``points`` (N, 3), already in the unit frame; return the trained network.
 
-    Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``), computes ``step_loss`` and takes one Adam step, with the learning
-    rate decaying geometrically. ``should_cancel`` is polled every step; when it returns True,
-    ``Cancelled`` is raised.
+    Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``),
+    computes ``step_loss`` and takes one Adam step, with the learning rate decaying geometrically.
+    ``should_cancel`` is polled every step; when it returns True, ``Cancelled`` is raised.
     """
-    _keep_freed_memory()
     generator = torch.Generator().manual_seed(params.seed)
-    model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
+    with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
+        model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
     cloud = torch.as_tensor(points, dtype=torch.float32)
     scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
     free_space = FreeSpace(points) if params.lambda3 > 0 else None
@@ -70,7 +54,15 @@ def fit(
         if progress is not None:
             losses = {"total": loss.item(), **{name: value.item() for name, value in terms.items()}}
             edge_share = edges.float().mean().item() if edges.numel() else 0.0
-            progress(Progress("fitting", iteration, params.iterations, losses, edge_share))
+            progress(
+                Progress(
+                    stage=Stage.FITTING,
+                    iteration=iteration,
+                    total=params.iterations,
+                    losses=losses,
+                    edge_share=edge_share,
+                )
+            )
     return model
 
 
@@ -124,20 +116,3 @@ def _cpu_has_bfloat16() -> bool:
     except OSError:
         return False
     return " amx_bf16" in flags or " avx512_bf16" in flags
-
-
-def _keep_freed_memory() -> None:
-    """Let glibc reuse freed blocks of up to 32 MB instead of unmapping them.
-
-    Every step allocates and frees tensors of 5-20 MB; by default glibc maps each one afresh
-    and the kernel zero-fills every page on first touch, which cost 20-30 % of a step here.
-    """
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc: nothing to tune
-        return
-    libc.mallopt(_M_MMAP_THRESHOLD, 32 * 1024 * 1024)
-    libc.mallopt(_M_TRIM_THRESHOLD, 1024 * 1024 * 1024)
-
-
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # from glibc's malloc.h

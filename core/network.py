@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import logging
 import math
-import os
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -200,39 +201,49 @@ def _hidden_activation_backward(grad: Tensor, out: Tensor, u: Tensor, n: int, m:
 
 
 class _Kernels:
-    """The element-wise kernels, compiled on first use; eager if compiling fails or is disabled.
+    """The element-wise kernels, compiled on first use unless compiling is off; eager otherwise.
 
-    Set ``EDGERECON_COMPILE=0`` to always run them eagerly.
+    ``core.runtime.configure`` sets ``compiled`` for the process. A kernel whose compilation fails
+    in the compiler backend (no C++ compiler, an unsupported platform) runs eagerly from then on,
+    and the first such failure is logged; any other error is a bug in the kernel and propagates.
     """
 
-    _eager = {
+    _eager: ClassVar[dict[str, Callable[..., Any]]] = {
         "softplus": _softplus,
         "first_activation": _first_activation,
         "hidden_activation": _hidden_activation,
         "hidden_activation_backward": _hidden_activation_backward,
     }
 
-    def __init__(self):
-        self.compiled = os.environ.get("EDGERECON_COMPILE", "1") != "0"
-        self._functions = {}
+    def __init__(self, compiled: bool = True):
+        self.compiled = compiled
+        self.fell_back: set[str] = set()  # the kernels whose compilation failed
+        self._functions: dict[str, Callable[..., Any]] = {}
 
-    def __getattr__(self, name: str):
+    def __getattr__(self, name: str) -> Callable[..., Any]:
         eager = self._eager[name]
-        if not self.compiled:
+        if not self.compiled or name in self.fell_back:
             return eager
         if name not in self._functions:
             self._functions[name] = torch.compile(eager, dynamic=True)
         compiled = self._functions[name]
+        from torch._dynamo.exc import BackendCompilerFailed  # loaded by torch.compile already
 
-        def call(*args):
+        def call(*args: Any) -> Any:
             try:
                 return compiled(*args)
-            except Exception as error:  # no C++ compiler, unsupported platform...
-                log.warning("torch.compile failed (%s); running the eager kernels", error)
-                self.compiled = False
+            except BackendCompilerFailed as error:
+                if not self.fell_back:
+                    log.warning("torch.compile failed (%s); running the eager kernels", error)
+                self.fell_back.add(name)
                 return eager(*args)
 
         return call
 
 
 _kernels = _Kernels()
+
+
+def use_compiled_kernels(enabled: bool) -> None:
+    """Compile the element-wise kernels (True, the default) or run them eagerly, for the whole process."""
+    _kernels.compiled = enabled

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from core.extract import extract_mesh, normals_and_laplacian
 from core.errors import CancelCheck
-from core.fit import Progress, ProgressCallback, fit
+from core.extract import extract_mesh, normals_and_laplacian
+from core.fit import fit
 from core.frame import Frame
+from core.outputs import OUTPUT_NAMES, write_atomically
 from core.params import FitParams
-
-OUTPUT_FILES = ("mesh.obj", "normals.json", "edges.json")
+from core.progress import Progress, ProgressCallback, Stage
 
 
 @dataclass
@@ -56,8 +56,8 @@ class Reconstruction:
         ).encode()
 
     def outputs(self) -> dict[str, bytes]:
-        """The three output files by name."""
-        return {"mesh.obj": self.mesh_obj(), "normals.json": self.normals_json(), "edges.json": self.edges_json()}
+        """The three output files by name (``core.outputs.OUTPUT_NAMES``)."""
+        return dict(zip(OUTPUT_NAMES, (self.mesh_obj(), self.normals_json(), self.edges_json())))
 
     def summary(self) -> dict:
         """Counts and timings, as a JSON-ready dict."""
@@ -85,7 +85,7 @@ def reconstruct(
     fitted = time.perf_counter()
 
     if progress is not None:
-        progress(Progress(stage="extracting", iteration=params.iterations, total=params.iterations))
+        progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
     mesh, stats = extract_mesh(model, params.resolution, unit.min(axis=0), unit.max(axis=0), should_cancel)
     mesh.vertices = frame.from_unit(mesh.vertices)
     normals, laplacian = normals_and_laplacian(model, unit, should_cancel=should_cancel)
@@ -104,9 +104,7 @@ def reconstruct(
     )
 
 
-def write_outputs(reconstruction: Reconstruction, directory: str | Path) -> None:
-    """Write ``mesh.obj``, ``normals.json`` and ``edges.json`` into ``directory``."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    for name, content in reconstruction.outputs().items():
-        (directory / name).write_bytes(content)
+def write_outputs(reconstruction: Reconstruction, directory: str | Path) -> Path:
+    """Write ``mesh.obj``, ``normals.json`` and ``edges.json`` into ``directory``, all or none
+    (``core.outputs.write_atomically``); return the folder."""
+    return write_atomically(reconstruction.outputs(), directory)
