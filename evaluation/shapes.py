@@ -9,7 +9,7 @@ by more than 30 degrees) and ``is_edge`` (that distance <= 0.01).
     >>> shape = sample_shape("cube", n_points=6000, seed=0)
     >>> write_ply("cube.ply", shape.points)
 
-From a shell: ``python -m core.shapes cube --points 6000 --seed 0 --out cube.ply``.
+From a shell: ``python -m evaluation.shapes cube --points 6000 --seed 0 --out cube.ply``.
 
 Shapes: ``cube``; ``box`` (1.0 x 0.8 x 0.5); ``l_shape`` (an extruded L with a concave inner
 edge); ``cylinder`` (96 sections: two circular rims, a smooth side); ``sphere`` (smooth control,
@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+
+from evaluation.metrics import sample_triangles
 
 SHAPES = ("cube", "box", "l_shape", "cylinder", "sphere")
 NOISE = 0.005
@@ -87,19 +89,11 @@ def sample_shape(
     """
     mesh = make_mesh(name)
     rng = np.random.default_rng(seed)
-    area = mesh.area_faces
-    face_index = rng.choice(len(area), size=n_points, p=area / area.sum())
-    # Uniform in a triangle: reflect the unit square's upper half onto the lower one.
-    a, b = rng.random((2, n_points))
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    corners = mesh.triangles[face_index]
-    clean = corners[:, 0] + a[:, None] * (corners[:, 1] - corners[:, 0]) + b[:, None] * (corners[:, 2] - corners[:, 0])
+    clean, face_index, weights = sample_triangles(mesh.triangles, n_points, rng)
     points = clean + rng.normal(0.0, noise, size=clean.shape)
 
     sharp = sharp_edges(mesh)
     edge_dist = _distance_to_segments(clean, sharp)
-    weights = np.stack([1 - a - b, a, b], axis=1)
     return SampledShape(
         name=name,
         points=points,

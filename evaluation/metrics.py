@@ -11,15 +11,15 @@ Three outputs are scored, each by its own functions:
 - the edge points: ``edge_scores`` (precision, recall, IoU against the ``is_edge`` labels) and
   ``edge_chamfer`` (the Edge Chamfer Distance to the ground-truth edge samples).
 
-``evaluate_shape`` scores a whole result against one shape folder of the sample data and returns
-every number above in one flat dict. All distances are Euclidean, not squared, in the units of
-the inputs. Only numpy, scipy and trimesh are used (no torch).
+Each takes arrays (or anything with ``vertices`` and ``faces``), wherever they come from;
+``evaluation.sample_data`` reads a shape folder of the sample data and scores a result against it
+with these. All distances are Euclidean, not squared, in the units of the inputs. Only numpy and
+scipy are used (no torch).
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -38,14 +38,24 @@ MAX_PIECES = 4_000_000
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     """``count`` points drawn uniformly by area on a triangle mesh, as an (count, 3) float64 array.
 
-    A triangle is chosen with probability proportional to its area and the point is uniform
-    inside it. The same ``seed`` gives the same points.
+    The same ``seed`` gives the same points (see ``sample_triangles``).
     """
-    corners = _corners(vertices, faces)
+    points, _, _ = sample_triangles(_corners(vertices, faces), count, np.random.default_rng(seed))
+    return points
+
+
+def sample_triangles(
+    corners: np.ndarray, count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` points drawn uniformly by area on triangles given as (n, 3, 3) corners.
+
+    A triangle is chosen with probability proportional to its area and the point is uniform
+    inside it. Returns the points (count, 3), the index of each one's triangle, and its
+    barycentric weights (count, 3) on the triangle's corners; nothing when the triangles have no area.
+    """
     areas = triangle_areas(corners)
     if count <= 0 or areas.sum() <= 0.0:
-        return np.zeros((0, 3))
-    rng = np.random.default_rng(seed)
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
     cumulative = np.cumsum(areas)
     chosen = np.searchsorted(cumulative, rng.random(count) * cumulative[-1], side="right")
     chosen = np.minimum(chosen, len(areas) - 1)
@@ -54,7 +64,8 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, seed: in
     outside = u + v > 1.0
     u[outside], v[outside] = 1.0 - u[outside], 1.0 - v[outside]
     a, b, c = corners[chosen, 0], corners[chosen, 1], corners[chosen, 2]
-    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
+    points = a + u[:, None] * (b - a) + v[:, None] * (c - a)
+    return points, chosen, np.stack([1.0 - u - v, u, v], axis=1)
 
 
 def triangle_areas(corners: np.ndarray) -> np.ndarray:
@@ -139,7 +150,7 @@ class TriangleTree:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, split_fraction: float = SPLIT_FRACTION):
         corners = _corners(vertices, faces)
         if len(corners):
-            diagonal = np.linalg.norm(np.ptp(corners.reshape(-1, 3), axis=0))
+            diagonal = float(np.linalg.norm(np.ptp(corners.reshape(-1, 3), axis=0)))
             corners = split_triangles(corners, split_fraction * diagonal)
             corners = corners[_z_order(corners.mean(axis=1))]
         self.a, self.b, self.c = (np.ascontiguousarray(corners[:, i]) for i in range(3))
@@ -168,7 +179,7 @@ class TriangleTree:
         ``max_pairs``, depth first, so memory stays bounded whatever the points.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if len(self) == 0 or len(points) == 0:
+        if self.centroid_tree is None or len(points) == 0:
             return np.full(len(points), np.inf)
         _, nearest = self.centroid_tree.query(points)
         best = point_triangle_distance(points, self.a[nearest], self.b[nearest], self.c[nearest])
@@ -220,7 +231,9 @@ def split_triangles(corners: np.ndarray, length: float, max_count: int = MAX_PIE
     return np.concatenate(finished + [corners])
 
 
-def surface_distances(mesh, gt_mesh, count: int = SURFACE_SAMPLES, seed: int = 0, exact: bool = True) -> dict:
+def surface_distances(
+    mesh: Any, gt_mesh: Any, count: int = SURFACE_SAMPLES, seed: int = 0, exact: bool = True
+) -> dict[str, float]:
     """Chamfer and Hausdorff distances between two triangle meshes (anything with ``vertices`` and
     ``faces``, such as ``trimesh.Trimesh``), as the sample data's README defines them.
 
@@ -356,66 +369,6 @@ def edge_chamfer(edge_points: np.ndarray, gt_edge_points: np.ndarray) -> float:
     to_gt, _ = cKDTree(gt_edge_points).query(edge_points)
     from_gt, _ = cKDTree(edge_points).query(gt_edge_points)
     return _chamfer(to_gt, from_gt)
-
-
-def labels_file(points_file: str) -> str:
-    """The labels file that goes with an input file of a shape folder.
-
-    ``points.ply`` and ``points_ascii.ply`` go with ``labels.npz``, ``points_4096.ply`` with
-    ``labels_4096.npz``, ``points_noise010.ply`` with ``labels_noise010.npz``.
-    """
-    variant = Path(points_file).stem.removeprefix("points").removesuffix("_ascii")
-    return f"labels{variant}.npz"
-
-
-def load_points_and_labels(
-    shape_dir: str | os.PathLike, points_file: str = "points.ply"
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The input points of a shape folder (float64, file order) and their labels (every array of
-    the matching ``labels*.npz``: ``normals``, ``is_edge``, ``points_clean``, ...).
-
-    Raises ValueError when the labels do not describe these points.
-    """
-    from core.ply import read_points
-
-    shape_dir = Path(shape_dir)
-    points = read_points(shape_dir / points_file)
-    with np.load(shape_dir / labels_file(points_file)) as archive:
-        labels = {key: archive[key] for key in archive.files}
-    if labels["points"].shape != points.shape or not np.allclose(labels["points"], points, atol=1e-6):
-        raise ValueError(f"{labels_file(points_file)} does not hold the points of {points_file}")
-    return points, labels
-
-
-def evaluate_shape(
-    mesh,
-    normals: np.ndarray,
-    edges: np.ndarray,
-    shape_dir: str | os.PathLike,
-    points_file: str = "points.ply",
-    count: int = SURFACE_SAMPLES,
-    seed: int = 0,
-) -> dict:
-    """Every score of one result on one shape folder of the sample data, in one flat dict.
-
-    ``mesh`` is the reconstruction (``trimesh.Trimesh`` or anything with ``vertices`` and
-    ``faces``), ``normals`` one normal per input point in file order, ``edges`` the indices of
-    the input points reported as edges (or a boolean mask); their positions are the input
-    points'. ``points_file`` names the input the result was computed from. The keys are those of
-    ``surface_distances``, ``normal_errors`` and ``edge_scores``, plus ``ecd``.
-    """
-    import trimesh
-
-    shape_dir = Path(shape_dir)
-    points, labels = load_points_and_labels(shape_dir, points_file)
-    gt_mesh = trimesh.load(shape_dir / "gt.ply", force="mesh", process=False)
-    gt_edge_points = np.load(shape_dir / "edges_gt.npy")
-    reported = edge_mask(edges, len(points))
-    scores = surface_distances(mesh, gt_mesh, count=count, seed=seed)
-    scores.update(normal_errors(normals, labels["normals"]))
-    scores.update(edge_scores(reported, labels["is_edge"]))
-    scores["ecd"] = edge_chamfer(points[reported], gt_edge_points)
-    return scores
 
 
 def _batches(point: np.ndarray, box: np.ndarray, level: int, size: int) -> list[tuple]:
