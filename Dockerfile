@@ -24,6 +24,7 @@ COPY pyproject.toml README.md ./
 COPY core core
 COPY service service
 COPY worker worker
+COPY evaluation evaluation
 RUN pip install .
 
 RUN useradd --create-home --uid 10001 edgerecon

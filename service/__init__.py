@@ -1,1 +1,3 @@
-"""edgerecon's front ends: the HTTP API (``service.app``) and the command line (``service.cli``)."""
+"""edgerecon's front ends: the HTTP API (``service.app``), the command line (``service.cli``) and
+``edgerecon serve`` (``service.serve``). They use ``worker``'s contract and store; nothing imports them.
+"""

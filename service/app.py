@@ -9,21 +9,22 @@
     GET    /healthz                   whether Redis answers and how many workers listen (503: Redis down)
 
 Every error is JSON, ``{"detail": ...}``. The API key and the upload limit are checked before a
-body is read, in ``service.middleware``. Jobs, outputs and heartbeats live in Redis (``service.store``).
-This process never imports torch: uploads are checked with ``core.ply`` and ``core.params`` only,
-and jobs are enqueued by the name of their function.
+body is read, in ``service.middleware``. Jobs and their outputs live in Redis (``worker.store``),
+workers announce themselves there (``worker.registry``). This process never imports torch:
+uploads are checked with ``core.ply`` and ``core.params`` only, and jobs are enqueued by the name
+of their function.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from datetime import datetime
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-import anyio
-from fastapi import APIRouter, FastAPI, File, Form, HTTPException, Request, Response, Security, UploadFile
+from fastapi import APIRouter, Depends, FastAPI, File, Form, HTTPException, Request, Response, Security, UploadFile
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBearer
 from pydantic import BaseModel, Field
@@ -33,23 +34,16 @@ from core.errors import PointCloudError
 from core.params import FitParams
 from core.ply import read_points
 from service.middleware import RequestGuard
-from service.settings import Settings, get_settings
-from service.store import (
-    CANCELED,
-    OUTPUTS,
-    QUEUED,
-    RUNNING,
-    SUCCEEDED,
-    Store,
-    connect,
-    connect_async,
-    is_job_id,
-    new_job_id,
-)
+from worker.connection import connect, connect_async
+from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
+from worker.registry import WorkerRegistry
+from worker.settings import Settings, get_settings
+from worker.store import JobStore
 
 log = logging.getLogger("edgerecon.api")
 
 MEDIA_TYPES = {"mesh.obj": "model/obj", "normals.json": "application/json", "edges.json": "application/json"}
+assert set(MEDIA_TYPES) == set(OUTPUT_NAMES)
 
 
 class JobForm(FitParams):
@@ -58,17 +52,11 @@ class JobForm(FitParams):
     points: UploadFile = File(description="the point cloud: a PLY file (ASCII or binary) whose vertices have x y z")
 
 
-class Progress(BaseModel):
-    stage: str = Field(description="starting, fitting or extracting")
-    iteration: int
-    total: int
-    losses: dict[str, float] | None = Field(None, description="latest loss terms: total, vanish, eikonal, laplacian")
-    edge_share: float | None = Field(None, description="share of the batch left out of the Laplacian term (DES)")
-
-
 class JobView(BaseModel):
+    """A job as the API shows it: its record (``worker.contract.JobRecord``) and its links."""
+
     id: str
-    status: Literal["queued", "running", "succeeded", "failed", "canceled"]
+    status: JobStatus
     progress: Progress | None
     params: FitParams = Field(description="every parameter of the fit, defaults filled in")
     points: int = Field(description="number of points in the uploaded cloud")
@@ -77,8 +65,18 @@ class JobView(BaseModel):
     ended_at: datetime | None
     expires_at: datetime | None = Field(description="when the job and its outputs will be deleted")
     error: str | None = Field(description="why the job failed")
-    result: dict | None = Field(description="vertex and face counts, edge point count, timings (succeeded jobs)")
+    result: dict[str, Any] | None = Field(
+        description="vertex and face counts, edge point count, timings (succeeded jobs)"
+    )
     links: dict[str, str] = Field(description="this job, and its outputs once it has succeeded")
+
+    @classmethod
+    def of(cls, record: JobRecord) -> JobView:
+        base = f"/v1/jobs/{record.id}"
+        links = {"self": base}
+        if record.status == JobStatus.SUCCEEDED:
+            links.update({name: f"{base}/{name}" for name in OUTPUT_NAMES})
+        return cls(**record.model_dump(exclude={"worker"}), links=links)
 
 
 class Health(BaseModel):
@@ -98,27 +96,37 @@ v1 = APIRouter(prefix="/v1", tags=["jobs"], dependencies=[Security(_bearer)])
 health = APIRouter(tags=["health"])
 
 
-def _store(request: Request) -> Store:
+# The dependencies are coroutines so that FastAPI runs them on the event loop, not in its thread
+# pool: the status poll, the busiest route, stays off the pool altogether.
+
+
+async def _job_store(request: Request) -> JobStore:
     return request.app.state.store
 
 
-def _checked_id(job_id: str) -> str:
+async def _registry(request: Request) -> WorkerRegistry:
+    return request.app.state.registry
+
+
+async def _settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+async def _checked_id(job_id: str) -> str:
     """``job_id`` if it has the shape of a job id; 404 otherwise, before any Redis key is built."""
     if not is_job_id(job_id):
         raise HTTPException(404, "no such job: job ids are 22 characters of A-Z, a-z, 0-9, '-' and '_'")
     return job_id
 
 
+Store = Annotated[JobStore, Depends(_job_store)]
+Registry = Annotated[WorkerRegistry, Depends(_registry)]
+AppSettings = Annotated[Settings, Depends(_settings)]
+JobId = Annotated[str, Depends(_checked_id)]
+
+
 def _not_found(job_id: str) -> HTTPException:
     return HTTPException(404, f"no job {job_id} (never submitted, or expired)")
-
-
-def _view(record: dict) -> JobView:
-    base = f"/v1/jobs/{record['id']}"
-    links = {"self": base}
-    if record["status"] == SUCCEEDED:
-        links.update({name: f"{base}/{name}" for name in OUTPUTS})
-    return JobView(**record, links=links)
 
 
 @v1.post(
@@ -128,49 +136,54 @@ def _view(record: dict) -> JobView:
     responses={400: {"model": ErrorBody, "description": "not a usable point cloud"}, 413: {"model": ErrorBody}},
 )
 def submit_job(
-    form: Annotated[JobForm, Form(media_type="multipart/form-data")], request: Request, response: Response
+    form: Annotated[JobForm, Form(media_type="multipart/form-data")],
+    store: Store,
+    settings: AppSettings,
+    response: Response,
 ) -> JobView:
     """Submit a cloud for reconstruction. The job is queued; poll ``Location`` for its status."""
-    settings: Settings = request.app.state.settings
     try:
         points = read_points(form.points.file.read(), min_points=settings.min_points, max_points=settings.max_points)
     except PointCloudError as error:
         raise HTTPException(400, f"points: {error}") from None
     params = FitParams(**form.model_dump(exclude={"points"}))
     job_id = new_job_id()
-    _store(request).create(job_id, points, params)
+    store.create(job_id, points, params)
     log.info("job %s queued: %d points, %s", job_id, len(points), params.model_dump())
     response.headers["Location"] = f"/v1/jobs/{job_id}"
-    return _view(_store(request).get(job_id))
+    record = store.get(job_id)
+    if record is None:  # expired at once: only with an absurdly short EDGERECON_JOB_TTL
+        raise _not_found(job_id)
+    return JobView.of(record)
 
 
 @v1.get("/jobs/{job_id}", response_model=JobView, responses={404: {"model": ErrorBody}})
-async def get_job(job_id: str, request: Request) -> JobView:
+async def get_job(job_id: JobId, store: Store) -> JobView:
     """The job's status, progress, parameters, timestamps, error or result summary, and links."""
-    record = await _store(request).get_async(_checked_id(job_id))
+    record = await store.get_async(job_id)
     if record is None:
         raise _not_found(job_id)
-    return _view(record)
+    return JobView.of(record)
 
 
 @v1.delete("/jobs/{job_id}", status_code=204, responses={404: {"model": ErrorBody}, 409: {"model": ErrorBody}})
-def cancel_job(job_id: str, request: Request) -> Response:
+def cancel_job(job_id: JobId, store: Store) -> Response:
     """Cancel a queued job (it never runs) or a running one (its worker stops within seconds)."""
-    found = _store(request).cancel(_checked_id(job_id))
+    found = store.cancel(job_id)
     if found is None:
         raise _not_found(job_id)
-    if found not in (QUEUED, RUNNING, CANCELED):
+    if found not in (JobStatus.QUEUED, JobStatus.RUNNING, JobStatus.CANCELED):
         raise HTTPException(409, f"the job has already {found}: only queued or running jobs can be canceled")
-    if found != CANCELED:
+    if found != JobStatus.CANCELED:
         log.info("job %s canceled while %s", job_id, found)
     return Response(status_code=204)
 
 
-def _output(request: Request, job_id: str, name: str) -> Response:
-    status, content = _store(request).output(_checked_id(job_id), name)
+def _output(store: JobStore, job_id: str, name: str) -> Response:
+    status, content = store.output(job_id, name)
     if status is None:
         raise _not_found(job_id)
-    if status != SUCCEEDED:
+    if status != JobStatus.SUCCEEDED:
         raise HTTPException(409, f"the job is {status}: {name} exists once it has succeeded")
     if content is None:
         raise _not_found(job_id)
@@ -178,56 +191,60 @@ def _output(request: Request, job_id: str, name: str) -> Response:
     return Response(content, media_type=MEDIA_TYPES[name], headers=disposition)
 
 
-_OUTPUT_RESPONSES = {404: {"model": ErrorBody}, 409: {"model": ErrorBody, "description": "not succeeded (yet)"}}
+_OUTPUT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorBody},
+    409: {"model": ErrorBody, "description": "not succeeded (yet)"},
+}
 
 
 @v1.get("/jobs/{job_id}/mesh.obj", response_class=Response, responses=_OUTPUT_RESPONSES)
-def get_mesh(job_id: str, request: Request) -> Response:
+def get_mesh(job_id: JobId, store: Store) -> Response:
     """The reconstructed mesh (Wavefront OBJ), in the input's coordinates."""
-    return _output(request, job_id, "mesh.obj")
+    return _output(store, job_id, "mesh.obj")
 
 
 @v1.get("/jobs/{job_id}/normals.json", response_class=Response, responses=_OUTPUT_RESPONSES)
-def get_normals(job_id: str, request: Request) -> Response:
+def get_normals(job_id: JobId, store: Store) -> Response:
     """``{"normals": [[nx, ny, nz], ...]}``: one outward unit normal per input point, in input order."""
-    return _output(request, job_id, "normals.json")
+    return _output(store, job_id, "normals.json")
 
 
 @v1.get("/jobs/{job_id}/edges.json", response_class=Response, responses=_OUTPUT_RESPONSES)
-def get_edges(job_id: str, request: Request) -> Response:
+def get_edges(job_id: JobId, store: Store) -> Response:
     """``{"tau", "count", "indices", "points", "laplacian"}``: the input points on sharp edges."""
-    return _output(request, job_id, "edges.json")
+    return _output(store, job_id, "edges.json")
 
 
 @health.get("/healthz", response_model=Health, responses={503: {"model": Health, "description": "Redis is down"}})
-def healthz(request: Request) -> Health | JSONResponse:
+def healthz(registry: Registry) -> Health | JSONResponse:
     """Liveness and readiness: whether Redis answers and how many workers listen (503 when Redis is down)."""
     try:
-        workers = _store(request).count_workers()
+        workers = registry.count_live()
     except RedisError as error:
         body = Health(status="unavailable", redis=False, workers=None, detail=f"Redis does not answer: {error}")
         return JSONResponse(body.model_dump(), status_code=503)
     return Health(status="ok", redis=True, workers=workers)
 
 
-async def _sweep_orphans(store: Store, interval: float) -> None:
+async def _sweep_orphans(store: JobStore, interval: float) -> None:
     """Fail, every ``interval`` seconds, the running jobs whose worker stopped signalling."""
     while True:
         await asyncio.sleep(interval)
         try:
-            for job_id in await anyio.to_thread.run_sync(store.fail_orphans):
+            for job_id in await asyncio.to_thread(store.fail_orphans):
                 log.warning("job %s failed: its worker stopped signalling", job_id)
         except RedisError as error:
             log.debug("orphan sweep skipped: %s", error)
 
 
 @asynccontextmanager
-async def _lifespan(app: FastAPI):
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     if not settings.redis_url:
         raise RuntimeError("REDIS_URL is not set: point it at the Redis the workers use (or run `edgerecon serve`)")
     redis, async_redis = connect(settings.redis_url, fail_fast=True), connect_async(settings.redis_url)
-    app.state.store = Store(redis, settings, async_redis)
+    app.state.store = JobStore(redis, settings, async_redis)
+    app.state.registry = WorkerRegistry(redis, settings)
     sweeper = asyncio.create_task(_sweep_orphans(app.state.store, settings.sweep_interval))
     try:
         yield
@@ -237,7 +254,7 @@ async def _lifespan(app: FastAPI):
         await async_redis.aclose()
 
 
-async def _redis_unavailable(request: Request, error: RedisError) -> JSONResponse:
+async def _redis_unavailable(request: Request, error: Exception) -> JSONResponse:  # a RedisError
     return JSONResponse({"detail": f"the job store (Redis) is unavailable, try again: {error}"}, status_code=503)
 
 

@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
 import sys
-import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, get_args, get_origin
+from typing import Any, Literal, cast, get_args, get_origin
 
 from pydantic import ValidationError
 
 from core.errors import EdgereconError
 from core.params import FitParams
+from core.progress import Progress, Stage
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return serve(args.host, args.port, args.workers)
     if args.command == "worker":
-        from worker.main import main as run_worker
+        from worker.process import main as run_worker
 
         return run_worker()
     return 2
@@ -54,7 +53,9 @@ def _add_param_options(parser: argparse.ArgumentParser) -> None:
         elif get_origin(field.annotation) is Literal:
             parser.add_argument(flag, dest=name, choices=get_args(field.annotation), default=None, help=help_text)
         else:
-            parser.add_argument(flag, dest=name, type=field.annotation, default=None, help=help_text)
+            parser.add_argument(
+                flag, dest=name, type=cast(Callable[[str], Any], field.annotation), default=None, help=help_text
+            )
 
 
 def _fit(args: argparse.Namespace) -> int:
@@ -69,16 +70,19 @@ def _fit(args: argparse.Namespace) -> int:
         return 2
     try:
         from core.ply import read_points
-        from core.reconstruct import reconstruct
+        from core.reconstruct import reconstruct, write_outputs
+        from core.runtime import configure
+        from worker.settings import Settings
 
+        configure(compile=Settings().compile)
         points = read_points(args.input)
         bar = tqdm(total=params.iterations, unit="it", desc="fitting", dynamic_ncols=True)
 
-        def progress(update):
-            if update.stage == "fitting":
+        def progress(update: Progress) -> None:
+            if update.stage == Stage.FITTING:
                 bar.update(update.iteration - bar.n)
-                if update.iteration % 50 == 0 or update.iteration == update.total:
-                    bar.set_postfix(loss=f"{update.losses['total']:.4f}", edges=f"{update.edge_share:.1%}")
+                if update.losses and (update.iteration % 50 == 0 or update.iteration == update.total):
+                    bar.set_postfix(loss=f"{update.losses['total']:.4f}", edges=f"{update.edge_share or 0:.1%}")
             else:
                 bar.close()
                 print("extracting the mesh, normals and edges...", file=sys.stderr)
@@ -87,7 +91,7 @@ def _fit(args: argparse.Namespace) -> int:
             result = reconstruct(points, params, progress=progress)
         finally:
             bar.close()
-        _write_atomically(result.outputs(), args.out)
+        write_outputs(result, args.out)
     except (EdgereconError, OSError) as error:
         print(f"edgerecon: {error}", file=sys.stderr)
         return 1
@@ -101,26 +105,6 @@ def _fit(args: argparse.Namespace) -> int:
         f"in {summary['timings']['fit_seconds']:.1f} s fit + {summary['timings']['extract_seconds']:.1f} s extraction"
     )
     return 0
-
-
-def _write_atomically(files: dict[str, bytes], directory: Path) -> None:
-    """Write ``files`` into ``directory`` so that a failure leaves no partial folder or file."""
-    directory = directory.resolve()
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{directory.name}-", dir=directory.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    staging.chmod(0o777 & ~umask)  # mkdtemp makes it private; the output folder should not be
-    try:
-        for name, content in files.items():
-            (staging / name).write_bytes(content)
-        if not directory.exists():
-            staging.rename(directory)
-            return
-        for name in files:
-            os.replace(staging / name, directory / name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import json
 import secrets
 
 from starlette.datastructures import Headers
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 
 class BodyTooLarge(Exception):
@@ -20,12 +21,12 @@ class BodyTooLarge(Exception):
 
 
 class RequestGuard:
-    def __init__(self, app, *, max_body_bytes: int, api_key: str | None = None):
+    def __init__(self, app: ASGIApp, *, max_body_bytes: int, api_key: str | None = None):
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.api_key = api_key.encode() if api_key else None
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         headers = Headers(scope=scope)
@@ -42,7 +43,7 @@ class RequestGuard:
         received = 0
         too_large = False
 
-        async def counting_receive():
+        async def counting_receive() -> Message:
             nonlocal received, too_large
             message = await receive()
             if message["type"] == "http.request":
@@ -52,7 +53,7 @@ class RequestGuard:
                     raise BodyTooLarge()
             return message
 
-        async def guarded_send(message):
+        async def guarded_send(message: Message) -> None:
             if not too_large:  # the app's own answer to a cut-off body is replaced by the 413
                 await send(message)
 
@@ -66,14 +67,15 @@ class RequestGuard:
 
     def _authorized(self, header: str) -> bool:
         scheme, _, token = header.partition(" ")
-        return scheme.lower() == "bearer" and secrets.compare_digest(token.strip().encode(), self.api_key)
+        expected = self.api_key or b""
+        return scheme.lower() == "bearer" and secrets.compare_digest(token.strip().encode(), expected)
 
     def _too_large(self) -> str:
         limit = self.max_body_bytes
         return f"the upload is larger than the limit of {limit} bytes ({limit / 2**20:g} MiB)"
 
 
-async def _answer(send, status: int, detail: str, headers: list[tuple[bytes, bytes]]) -> None:
+async def _answer(send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]]) -> None:
     """Send a complete JSON error response ``{"detail": ...}``."""
     body = json.dumps({"detail": detail}).encode()
     await send(

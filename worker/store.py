@@ -1,4 +1,4 @@
-"""Everything the API and the workers keep in Redis, in one place: jobs, their blobs, worker heartbeats.
+"""The jobs in Redis: their records, their input and outputs, and the state machine they move along.
 
 A job is a hash (its record) plus compressed blobs (the input points and the three outputs), all
 under ``{prefix}:job:{id}`` and expiring together ``job_ttl`` seconds after the job's last change.
@@ -12,9 +12,9 @@ cancel, a crash verdict and a finishing worker cannot overwrite one another: the
 The rq job that carries a job to a worker has the same id and only the id as its argument (JSON
 serializer); the parameters and points stay in the record and blobs.
 
-Crash detection: while a worker runs a job, its heartbeat thread keeps ``{prefix}:job:{id}:alive``
-alive (``heartbeat_ttl`` seconds). A ``running`` job without that key belongs to a dead worker and
-is failed when its status is read or by the API's periodic sweep (``fail_orphans``).
+Crash detection: while a worker runs a job, its heartbeat keeps ``{prefix}:job:{id}:alive`` alive
+(``heartbeat_ttl`` seconds). A ``running`` job without that key belongs to a dead worker and is
+failed when its status is read or by the API's periodic sweep (``fail_orphans``).
 """
 
 from __future__ import annotations
@@ -22,31 +22,24 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-import re
-import secrets
 import zlib
-from datetime import datetime, timedelta, timezone
+from collections.abc import Mapping
+from datetime import UTC, datetime, timedelta
+from typing import Any, cast
 
 import numpy as np
 from redis import Redis
 from redis.asyncio import Redis as AsyncRedis
-from redis.asyncio.retry import Retry as AsyncRetry
-from redis.backoff import ExponentialWithJitterBackoff
-from redis.retry import Retry
 from rq import Queue
 from rq.exceptions import NoSuchJobError
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
 from core.params import FitParams
-from service.settings import Settings
-
-QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELED = "queued", "running", "succeeded", "failed", "canceled"
-OUTPUTS = ("mesh.obj", "normals.json", "edges.json")
-JOB_FUNCTION = "worker.jobs.run_reconstruction"  # by name: the API never imports the worker (torch)
-ORPHANED = "the worker running this job stopped unexpectedly (crashed or was killed); submit the job again"
-
-_JOB_ID = re.compile(r"[A-Za-z0-9_-]{22}")
+from worker.connection import text
+from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobRecord, JobStatus, Progress, Stage, is_job_id
+from worker.errors import InputExpired, InvalidJobId
+from worker.settings import Settings
 
 # KEYS[1] the record, KEYS[2] the set of running job ids, KEYS[3..] more keys of the job.
 # ARGV[1] allowed statuses (space-separated), ARGV[2] job id, ARGV[3] ttl (0: leave expiries alone),
@@ -72,46 +65,18 @@ return status
 """
 
 
-def new_job_id() -> str:
-    """A fresh job id: 128 random bits, URL-safe (22 characters)."""
-    return secrets.token_urlsafe(16)
-
-
-def is_job_id(text: str) -> bool:
-    """Whether ``text`` has the shape of a job id (checked before any key is built from it)."""
-    return _JOB_ID.fullmatch(text) is not None
-
-
-# The API's clients fail fast (short timeouts, one quick retry), so that a request answers 503
-# promptly while Redis is down; workers keep redis-py's patient defaults.
-_FAIL_FAST = {"socket_connect_timeout": 2, "socket_timeout": 5, "health_check_interval": 30}
-_QUICK_RETRY = ExponentialWithJitterBackoff(base=0.01, cap=0.1), 1
-
-
-def connect(url: str, *, fail_fast: bool = False) -> Redis:
-    """A Redis client for ``url``; ``fail_fast`` for the API."""
-    if not fail_fast:
-        return Redis.from_url(url, health_check_interval=30)
-    return Redis.from_url(url, retry=Retry(*_QUICK_RETRY), **_FAIL_FAST)
-
-
-def connect_async(url: str) -> AsyncRedis:
-    """The API's asyncio client for ``url`` (fail-fast too)."""
-    return AsyncRedis.from_url(url, retry=AsyncRetry(*_QUICK_RETRY), **_FAIL_FAST)
-
-
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
 def _pack(data: bytes, level: int = 6) -> bytes:
     return zlib.compress(data, level)
 
 
-class Store:
+class JobStore:
     """The jobs of one service (one key prefix and one queue) in one Redis."""
 
-    def __init__(self, redis: Redis, settings: Settings, async_redis=None):
+    def __init__(self, redis: Redis, settings: Settings, async_redis: AsyncRedis | None = None):
         self.redis = redis
         self.async_redis = async_redis  # the API's asyncio client, for get_async
         self.prefix = settings.key_prefix
@@ -125,22 +90,24 @@ class Store:
 
     def _key(self, job_id: str, part: str = "") -> str:
         if not is_job_id(job_id):  # never build a key from unchecked input
-            raise ValueError(f"not a job id: {job_id!r}")
+            raise InvalidJobId(f"not a job id: {job_id!r}")
         return f"{self.prefix}:job:{job_id}" + (f":{part}" if part else "")
 
     def _job_keys(self, job_id: str) -> list[str]:
         """The record, the running set, then every other key of the job (they expire together)."""
-        blobs = [self._key(job_id, name) for name in ("points", *OUTPUTS)]
+        blobs = [self._key(job_id, name) for name in ("points", *OUTPUT_NAMES)]
         return [self._key(job_id), f"{self.prefix}:running", *blobs]
 
-    def _update(self, job_id: str, allowed: tuple[str, ...], fields: dict, *, touch: bool) -> str | None:
+    def _update(
+        self, job_id: str, allowed: tuple[JobStatus, ...], fields: Mapping[str, str], *, touch: bool
+    ) -> JobStatus | None:
         """Set ``fields`` on the record if its status is in ``allowed``; return the status found.
         ``touch`` restarts the expiry of every key of the job."""
-        args = [" ".join(allowed), job_id, self.ttl if touch else 0]
+        args: list[str | int] = [" ".join(allowed), job_id, self.ttl if touch else 0]
         for name, value in fields.items():
             args += [name, value]
         found = self._update_if(keys=self._job_keys(job_id), args=args)
-        return found.decode() if isinstance(found, bytes) else found
+        return JobStatus(text(found)) if found else None
 
     # --- the API's side ----------------------------------------------------------------------------
 
@@ -148,8 +115,8 @@ class Store:
         """Store the input and the record of a new job and enqueue it, all in one transaction."""
         buffer = io.BytesIO()
         np.save(buffer, points, allow_pickle=False)
-        record = {
-            "status": QUEUED,
+        record: dict[Any, Any] = {  # typed as redis-py's hset wants it
+            "status": JobStatus.QUEUED.value,
             "params": params.model_dump_json(),
             "points": len(points),
             "created_at": _now(),
@@ -171,82 +138,88 @@ class Store:
             )
             pipe.execute()
 
-    def get(self, job_id: str) -> dict | None:
-        """The job's record as a dict (None if unknown or expired); fails it first if its worker died."""
+    def get(self, job_id: str) -> JobRecord | None:
+        """The job's record (None if unknown or expired); fails it first if its worker died."""
         with self.redis.pipeline(transaction=False) as pipe:
             raw, pttl, alive = self._queue_read(pipe, job_id).execute()
         if self._orphaned(raw, alive) and self.fail(job_id, ORPHANED):
             return self.get(job_id)
         return self._record(job_id, raw, pttl)
 
-    async def get_async(self, job_id: str) -> dict | None:
+    async def get_async(self, job_id: str) -> JobRecord | None:
         """``get`` on the asyncio client: status polls, the API's busiest route, skip the thread pool."""
+        assert self.async_redis is not None, "get_async needs the store's asyncio client"
         async with self.async_redis.pipeline(transaction=False) as pipe:
             raw, pttl, alive = await self._queue_read(pipe, job_id).execute()
         if self._orphaned(raw, alive) and await asyncio.to_thread(self.fail, job_id, ORPHANED):
             return await self.get_async(job_id)
         return self._record(job_id, raw, pttl)
 
-    def _queue_read(self, pipe, job_id: str):
+    def _queue_read(self, pipe: Any, job_id: str) -> Any:
         pipe.hgetall(self._key(job_id))
         pipe.pttl(self._key(job_id))
         pipe.exists(self._key(job_id, "alive"))
         return pipe
 
     @staticmethod
-    def _orphaned(raw: dict, alive: int) -> bool:
+    def _orphaned(raw: dict[bytes, bytes], alive: int) -> bool:
         """Whether the record says running while no worker keeps the job alive."""
-        return raw.get(b"status") == RUNNING.encode() and not alive
+        return raw.get(b"status") == JobStatus.RUNNING.encode() and not alive
 
     @staticmethod
-    def _record(job_id: str, raw: dict, pttl: int) -> dict | None:
+    def _record(job_id: str, raw: dict[bytes, bytes], pttl: int) -> JobRecord | None:
         if not raw:
             return None
         record = {key.decode(): value.decode() for key, value in raw.items()}
-        expires = datetime.now(timezone.utc) + timedelta(milliseconds=pttl) if pttl > 0 else None
-        return {
-            "id": job_id,
-            "status": record["status"],
-            "progress": json.loads(record["progress"]) if "progress" in record else None,
-            "params": json.loads(record["params"]),
-            "points": int(record["points"]),
-            "created_at": record["created_at"],
-            "started_at": record.get("started_at"),
-            "ended_at": record.get("ended_at"),
-            "expires_at": expires,
-            "error": record.get("error"),
-            "result": json.loads(record["result"]) if "result" in record else None,
-        }
+        return JobRecord(
+            id=job_id,
+            status=JobStatus(record["status"]),
+            progress=Progress.model_validate_json(record["progress"]) if "progress" in record else None,
+            params=FitParams.model_validate_json(record["params"]),
+            points=int(record["points"]),
+            created_at=datetime.fromisoformat(record["created_at"]),
+            started_at=record.get("started_at"),
+            ended_at=record.get("ended_at"),
+            expires_at=datetime.now(UTC) + timedelta(milliseconds=pttl) if pttl > 0 else None,
+            error=record.get("error"),
+            result=json.loads(record["result"]) if "result" in record else None,
+            worker=record.get("worker"),
+        )
 
-    def cancel(self, job_id: str) -> str | None:
+    def cancel(self, job_id: str) -> JobStatus | None:
         """Cancel a queued or running job; return the status it had (None if unknown).
 
         A queued job is also taken off the queue. A running one stops at its worker's next progress
         write, which finds the status changed."""
-        found = self._update(job_id, (QUEUED, RUNNING), {"status": CANCELED, "ended_at": _now()}, touch=True)
-        if found == QUEUED:
+        found = self._update(
+            job_id,
+            (JobStatus.QUEUED, JobStatus.RUNNING),
+            {"status": JobStatus.CANCELED.value, "ended_at": _now()},
+            touch=True,
+        )
+        if found == JobStatus.QUEUED:
             try:
                 Job.fetch(job_id, connection=self.redis, serializer=JSONSerializer).delete()
             except NoSuchJobError:  # a worker took it meanwhile: it will find the job canceled
                 pass
         return found
 
-    def output(self, job_id: str, name: str) -> tuple[str | None, bytes | None]:
+    def output(self, job_id: str, name: str) -> tuple[JobStatus | None, bytes | None]:
         """The status of the job and, if it succeeded, the content of its output ``name``."""
-        if name not in OUTPUTS:
+        if name not in OUTPUT_NAMES:
             raise ValueError(f"no output called {name!r}")
         with self.redis.pipeline(transaction=False) as pipe:
             pipe.hget(self._key(job_id), "status")
             pipe.get(self._key(job_id, name))
             status, blob = pipe.execute()
-        status = status.decode() if status else None
-        if status != SUCCEEDED or blob is None:
-            return status, None
-        return status, zlib.decompress(blob)
+        found = JobStatus(text(status)) if status else None
+        if found != JobStatus.SUCCEEDED or blob is None:
+            return found, None
+        return found, zlib.decompress(blob)
 
     def fail_orphans(self) -> list[str]:
         """Fail every running job whose worker stopped signalling; return their ids."""
-        running = [member.decode() for member in self.redis.smembers(f"{self.prefix}:running")]
+        running = [text(member) for member in self.redis.smembers(f"{self.prefix}:running")]
         running = [job_id for job_id in running if is_job_id(job_id)]
         if not running:
             return []
@@ -256,8 +229,8 @@ class Store:
             alive = pipe.execute()
         failed = []
         for job_id in (job_id for job_id, ok in zip(running, alive) if not ok):
-            found = self._update(job_id, (RUNNING,), self._failure(ORPHANED), touch=True)
-            if found == RUNNING:
+            found = self._update(job_id, (JobStatus.RUNNING,), self._failure(ORPHANED), touch=True)
+            if found == JobStatus.RUNNING:
                 failed.append(job_id)
             elif found is None:  # the record expired: forget it
                 self.redis.srem(f"{self.prefix}:running", job_id)
@@ -271,15 +244,15 @@ class Store:
         # The heartbeat key goes first, so a running job always has one while its worker lives.
         self.keep_alive(job_id, worker)
         fields = {
-            "status": RUNNING,
+            "status": JobStatus.RUNNING.value,
             "started_at": _now(),
             "worker": worker,
-            "progress": json.dumps({"stage": "starting", "iteration": 0, "total": 0}),
+            "progress": Progress(stage=Stage.STARTING, iteration=0, total=0).model_dump_json(),
         }
-        if self._update(job_id, (QUEUED,), fields, touch=True) != QUEUED:
+        if self._update(job_id, (JobStatus.QUEUED,), fields, touch=True) != JobStatus.QUEUED:
             return None
         params = self.redis.hget(self._key(job_id), "params")
-        return FitParams.model_validate_json(params)
+        return FitParams.model_validate_json(params) if params else None
 
     def keep_alive(self, job_id: str, worker: str) -> None:
         """The worker's heartbeat for a job it is running."""
@@ -289,65 +262,40 @@ class Store:
         """The job's input cloud, (N, 3) float64."""
         blob = self.redis.get(self._key(job_id, "points"))
         if blob is None:
-            raise LookupError("the job's input has expired")
-        return np.load(io.BytesIO(zlib.decompress(blob)), allow_pickle=False)
+            raise InputExpired()
+        return np.load(io.BytesIO(zlib.decompress(cast(bytes, blob))), allow_pickle=False)
 
-    def set_progress(self, job_id: str, progress: dict) -> bool:
+    def set_progress(self, job_id: str, progress: Progress) -> bool:
         """Record the progress of a running job (a change: its keys' expiry restarts); False when it
         is no longer running (canceled, failed by a crash verdict, expired): the worker should stop."""
-        return self._update(job_id, (RUNNING,), {"progress": json.dumps(progress)}, touch=True) == RUNNING
+        return (
+            self._update(job_id, (JobStatus.RUNNING,), {"progress": progress.model_dump_json()}, touch=True)
+            == JobStatus.RUNNING
+        )
 
     def is_running(self, job_id: str) -> bool:
         """Whether the job's status is still ``running``."""
-        return self.redis.hget(self._key(job_id), "status") == RUNNING.encode()
+        return self.redis.hget(self._key(job_id), "status") == JobStatus.RUNNING.encode()
 
-    def succeed(self, job_id: str, outputs: dict[str, bytes], summary: dict) -> bool:
+    def succeed(self, job_id: str, outputs: Mapping[str, bytes], summary: Mapping[str, Any]) -> bool:
         """Store the outputs and mark the job succeeded, unless it stopped running meanwhile."""
-        keys = [self._key(job_id, name) for name in OUTPUTS]
+        if not self.is_running(job_id):  # finished already: a late write must not touch its outputs
+            return False
+        keys = [self._key(job_id, name) for name in OUTPUT_NAMES]
         with self.redis.pipeline() as pipe:
-            for key, name in zip(keys, OUTPUTS):
+            for key, name in zip(keys, OUTPUT_NAMES):
                 pipe.set(key, _pack(outputs[name]), ex=self.ttl)
             pipe.execute()
-        fields = {"status": SUCCEEDED, "ended_at": _now(), "result": json.dumps(summary)}
-        if self._update(job_id, (RUNNING,), fields, touch=True) == RUNNING:
+        fields = {"status": JobStatus.SUCCEEDED.value, "ended_at": _now(), "result": json.dumps(dict(summary))}
+        if self._update(job_id, (JobStatus.RUNNING,), fields, touch=True) == JobStatus.RUNNING:
             return True
-        self.redis.delete(*keys)  # canceled or failed meanwhile: its outputs are not wanted
+        self.redis.delete(*keys)  # canceled or failed while they were written: they are not wanted
         return False
 
     def fail(self, job_id: str, reason: str) -> bool:
         """Mark a running job failed with a reason a user can read; False if it was not running."""
-        return self._update(job_id, (RUNNING,), self._failure(reason), touch=True) == RUNNING
+        return self._update(job_id, (JobStatus.RUNNING,), self._failure(reason), touch=True) == JobStatus.RUNNING
 
     @staticmethod
-    def _failure(reason: str) -> dict:
-        return {"status": FAILED, "ended_at": _now(), "error": reason}
-
-    # --- workers -------------------------------------------------------------------------------
-
-    def worker_beat(self, worker: str) -> None:
-        """Announce that ``worker`` listens (for ``heartbeat_ttl`` seconds)."""
-        with self.redis.pipeline() as pipe:
-            pipe.sadd(f"{self.prefix}:workers", worker)
-            pipe.set(f"{self.prefix}:worker:{worker}", _now(), ex=self.heartbeat_ttl)
-            pipe.execute()
-
-    def worker_gone(self, worker: str) -> None:
-        """Withdraw ``worker`` at a clean exit."""
-        with self.redis.pipeline() as pipe:
-            pipe.srem(f"{self.prefix}:workers", worker)
-            pipe.delete(f"{self.prefix}:worker:{worker}")
-            pipe.execute()
-
-    def count_workers(self) -> int:
-        """How many workers signalled within the last ``heartbeat_ttl`` seconds."""
-        names = [name.decode() for name in self.redis.smembers(f"{self.prefix}:workers")]
-        if not names:
-            return 0
-        with self.redis.pipeline(transaction=False) as pipe:
-            for name in names:
-                pipe.exists(f"{self.prefix}:worker:{name}")
-            alive = pipe.execute()
-        dead = [name for name, ok in zip(names, alive) if not ok]
-        if dead:
-            self.redis.srem(f"{self.prefix}:workers", *dead)
-        return len(names) - len(dead)
+    def _failure(reason: str) -> dict[str, str]:
+        return {"status": JobStatus.FAILED.value, "ended_at": _now(), "error": reason}

@@ -1,8 +1,10 @@
-"""The service's configuration, read from the environment (pydantic-settings).
+"""The configuration of the service and of ``edgerecon fit``, read from the environment (pydantic-settings).
 
 Every setting is ``EDGERECON_<NAME>`` (e.g. ``EDGERECON_JOB_TTL=3600``) except the Redis address,
-which is the conventional ``REDIS_URL``. Empty variables count as unset. The API, the workers and
-``edgerecon serve`` all read the same settings, so one environment configures the whole service.
+which is the conventional ``REDIS_URL``. Empty variables count as unset. The API, the workers,
+``edgerecon serve`` and ``edgerecon fit`` all read these settings at their start and pass them
+down, so one environment configures everything; nothing below the entry points reads the
+environment.
 """
 
 from __future__ import annotations
@@ -56,6 +58,11 @@ class Settings(BaseSettings):
     )
     worker_warmup: bool = Field(
         True, description="fit a tiny cloud at worker start so the first job pays no compile time"
+    )
+
+    # The fitting core, in workers and in `edgerecon fit` (core.runtime.configure).
+    compile: bool = Field(
+        True, description="compile the network's kernels with torch.compile (0: run them eagerly, no compile time)"
     )
 
 
