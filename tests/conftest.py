@@ -1,10 +1,14 @@
-"""Shared fixtures."""
+"""The fixtures every test folder may use; plain helpers are in ``tests/helpers.py``."""
 
+from __future__ import annotations
+
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from tests.helpers import EXAMPLE_CLOUD, SHARED_DATA
+from worker.redis_server import RedisServer
 
 
 @pytest.fixture
@@ -16,7 +20,7 @@ def shared_data() -> Path:
 
 
 @pytest.fixture(scope="module")
-def one_thread():
+def one_thread() -> Iterator[None]:
     """Torch on one thread for the module: small tensors run faster so on a shared machine."""
     import torch
 
@@ -24,3 +28,19 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
+    """A redis-server of the tests' own on a free port (each test keeps to its own key prefix)."""
+    server = RedisServer(tmp_path_factory.mktemp("redis")).start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="session")
+def example_cloud() -> bytes:
+    """examples/cube.ply, as bytes."""
+    if not EXAMPLE_CLOUD.is_file():
+        pytest.skip("examples/cube.ply is absent")
+    return EXAMPLE_CLOUD.read_bytes()

@@ -12,6 +12,7 @@ import pytest
 
 from core.errors import PointCloudError
 from core.ply import MAX_POINTS, MIN_POINTS, read_points
+from tests.helpers import EXAMPLE_CLOUD
 
 HUGE = 10**12
 N = 200
@@ -233,9 +234,6 @@ def test_collinear_points():
 
 def _fails_fast(data: bytes, phrase: str) -> None:
     """Raises the error quickly and without allocating anything near the declared size."""
-    import plyfile  # noqa: F401  (imports are not what is measured)
-    import trimesh.exchange.ply  # noqa: F401
-
     tracemalloc.start()
     started = time.perf_counter()
     try:
@@ -329,9 +327,7 @@ def test_reading_and_params_do_not_import_torch():
         "core.ply.read_points(open(sys.argv[1], 'rb').read());"
         "print('torch' in sys.modules)"
     )
-    from pathlib import Path
-
-    example = Path(__file__).resolve().parents[1] / "examples" / "cube.ply"
-    result = subprocess.run([sys.executable, "-c", code, str(example)], capture_output=True, text=True, timeout=60)
+    command = [sys.executable, "-c", code, str(EXAMPLE_CLOUD)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"

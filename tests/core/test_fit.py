@@ -1,6 +1,6 @@
 """The losses, the samples and the fitting loop, down to the quality of a real fit.
 
-The quality tests fit a noisy synthetic cube (core.shapes, whose sharp edges are known) with a
+The quality tests fit a noisy synthetic cube (evaluation.shapes, whose sharp edges are known) with a
 network and schedule small enough for a few seconds on two shared cores, and hold the result to
 bounds measured on it with a margin; with ../shared/data present, its cube is fitted with the
 shipped defaults and held to the fitting issue's acceptance bounds.
@@ -13,14 +13,16 @@ import pytest
 import torch
 
 from core.errors import Cancelled
-from core.fit import Progress, fit
+from core.fit import fit
 from core.losses import free_space_loss, laplacian_loss
-from core.metrics import edge_scores, evaluate_shape, normal_errors, surface_distances
 from core.params import FitParams
+from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
-from core.shapes import sample_shape
+from evaluation.metrics import edge_scores, normal_errors, surface_distances
+from evaluation.sample_data import evaluate_shape
+from evaluation.shapes import sample_shape
 
-SMALL = dict(width=64, depth=2, batch_points=256, resolution=32)
+SMALL = {"width": 64, "depth": 2, "batch_points": 256, "resolution": 32}
 
 
 # --- losses -----------------------------------------------------------------------------------
@@ -107,7 +109,7 @@ def test_fit_is_deterministic_for_a_seed():
     params = FitParams(iterations=5, seed=3, precision="float32", **SMALL)
     first, again = fit(points, params), fit(points, params)
     other = fit(points, params.model_copy(update={"seed": 4}))
-    for a, b, c in zip(first.parameters(), again.parameters(), other.parameters()):
+    for a, b in zip(first.parameters(), again.parameters()):
         assert torch.equal(a, b)
     assert not all(torch.equal(a, c) for a, c in zip(first.parameters(), other.parameters()))
 
@@ -117,6 +119,7 @@ def test_progress_reports_every_step_with_each_term():
     seen: list[Progress] = []
     fit(points, FitParams(iterations=4, **SMALL), progress=seen.append)
     assert [p.iteration for p in seen] == [1, 2, 3, 4] and {p.total for p in seen} == {4}
+    assert {p.stage for p in seen} == {Stage.FITTING}
     assert set(seen[-1].losses) == {"total", "vanish", "eikonal", "laplacian", "free_space"}
     assert all(np.isfinite(list(p.losses.values())).all() and 0 <= p.edge_share <= 1 for p in seen)
     seen.clear()

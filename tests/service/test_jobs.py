@@ -17,21 +17,11 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
-from test_service_fixtures import (  # noqa: F401 (fixtures)
-    ENDLESS,
-    SHARED_DATA,
-    TINY,
-    Service,
-    example_cloud,
-    ply_binary,
-    redis_server,
-    sphere,
-    wait_for,
-)
 
 from core.ply import read_points
-from service.settings import Settings
-from service.store import Store
+from tests.helpers import ENDLESS, SHARED_DATA, TINY, Service, ply_binary, sphere, wait_for
+from worker.settings import Settings
+from worker.store import JobStore
 
 # Enough fitting for a recognisable surface in a few seconds.
 E2E = {"iterations": 150, "resolution": 48, "width": 64, "depth": 2, "batch_points": 512}
@@ -187,7 +177,7 @@ def test_reading_the_status_fails_a_job_whose_worker_died(redis_server, tmp_path
     service.start_api()
     try:
         job_id = service.submit(ply_binary(sphere(300)), **TINY)["id"]
-        store = Store(service.redis, Settings(key_prefix=service.prefix, queue=service.queue))
+        store = JobStore(service.redis, Settings(key_prefix=service.prefix, queue=service.queue))
         assert store.start(job_id, "a-worker") is not None  # a worker took the job...
         service.redis.delete(f"{service.prefix}:job:{job_id}:alive")  # ...and died: its heartbeat lapsed
         assert service.record(job_id)["status"] == "running"

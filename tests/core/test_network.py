@@ -33,7 +33,7 @@ def kernels(request, monkeypatch):
     monkeypatch.setattr(shared, "compiled", request.param == "compiled")
     yield request.param
     if request.param == "compiled":
-        assert shared.compiled, "torch.compile failed and the kernels fell back to eager (see the log)"
+        assert not shared.fell_back, "torch.compile failed and the kernels fell back to eager (see the log)"
         assert shared._functions, "the compiled kernels were not used"
 
 
@@ -125,35 +125,53 @@ def test_derivatives_value_equals_forward(kernels):
     torch.testing.assert_close(f, model(x), rtol=1e-5, atol=1e-6)
 
 
-def test_fallback_to_eager_when_compiling_fails(monkeypatch, caplog):
+def _compile_failing_with(error: Exception):
+    """A stand-in for torch.compile whose compiled functions raise ``error`` when called."""
+
     def broken_compile(function, **kwargs):
         def fail(*args):
-            raise RuntimeError("no C++ compiler (simulated)")
+            raise error
 
         return fail
 
-    monkeypatch.delenv("EDGERECON_COMPILE", raising=False)
-    monkeypatch.setattr(torch, "compile", broken_compile)
+    return broken_compile
+
+
+def test_a_kernel_whose_compilation_fails_runs_eagerly_and_the_failure_is_logged_once(monkeypatch, caplog):
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    failure = BackendCompilerFailed(torch.compile, RuntimeError("no C++ compiler (simulated)"), None)
+    monkeypatch.setattr(torch, "compile", _compile_failing_with(failure))
     fresh = network._Kernels()
     assert fresh.compiled
     monkeypatch.setattr(network, "_kernels", fresh)
     with caplog.at_level(logging.WARNING, logger="core.network"):
         check_against_reference(random_network(2, 16, 100.0), random_points(), SUBSET, 1e-8, 1e-8)
-    assert fresh.compiled is False
+        check_against_reference(random_network(2, 16, 100.0), random_points(), SUBSET, 1e-8, 1e-8)
+    assert fresh.fell_back == {"first_activation", "hidden_activation", "hidden_activation_backward"}
+    assert fresh.compiled  # the switch stays on: only the kernels that failed run eagerly
     assert "torch.compile failed" in caplog.text and "simulated" in caplog.text
+    assert caplog.text.count("torch.compile failed") == 1
 
 
-@pytest.mark.parametrize("value, compiled", [("0", False), ("1", True), (None, True)])
-def test_environment_switch(monkeypatch, value, compiled):
-    if value is None:
-        monkeypatch.delenv("EDGERECON_COMPILE", raising=False)
-    else:
-        monkeypatch.setenv("EDGERECON_COMPILE", value)
-    kernels = network._Kernels()
-    assert kernels.compiled is compiled
+def test_an_error_that_is_not_the_compilers_propagates_and_compiling_stays_on(monkeypatch):
+    monkeypatch.setattr(torch, "compile", _compile_failing_with(RuntimeError("a bug in a kernel (simulated)")))
+    fresh = network._Kernels()
+    monkeypatch.setattr(network, "_kernels", fresh)
+    with pytest.raises(RuntimeError, match="a bug in a kernel"):
+        random_network(2, 16, 100.0).derivatives(random_points())
+    assert fresh.compiled and not fresh.fell_back
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_process_switch_selects_eager_or_compiled_kernels(monkeypatch, compiled):
+    monkeypatch.setattr(network, "_kernels", network._Kernels())
+    network.use_compiled_kernels(compiled)
+    assert network._kernels.compiled is compiled
+    eager = network._kernels.first_activation is network._first_activation
+    assert eager is not compiled
     if not compiled:
-        assert kernels.first_activation is network._first_activation
-        assert kernels.hidden_activation_backward is network._hidden_activation_backward
+        assert network._kernels.hidden_activation_backward is network._hidden_activation_backward
 
 
 # --- geometric initialisation --------------------------------------------------------------------

@@ -14,18 +14,9 @@ import httpx
 import psutil
 import pytest
 import trimesh
-from test_service_fixtures import (  # noqa: F401 (fixtures)
-    ENDLESS,
-    ROOT,
-    TEST_ENV,
-    TINY,
-    clean_environ,
-    example_cloud,
-    free_port,
-    redis_server,
-    stop_process,
-    wait_for,
-)
+
+from tests.helpers import ENDLESS, ROOT, TEST_ENV, TINY, clean_environ, stop_process, wait_for
+from worker.redis_server import free_port
 
 
 def _serve(tmp_path, workers: int, **env) -> tuple[subprocess.Popen, str]:
@@ -84,7 +75,7 @@ def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, ex
 
 def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_server):
     # This worker also runs its warm-up fit (with eager kernels, to stay cheap).
-    process, url = _serve(
+    process, _ = _serve(
         tmp_path,
         workers=1,
         REDIS_URL=redis_server.url,

@@ -2,7 +2,7 @@
 
 Three networks (width 64, depth 2, β = 100): a freshly initialised one (a lumpy sphere of radius
 about 0.3), one with randomly perturbed weights (a blob that is no sphere) and one briefly fitted
-to a box cloud from core.shapes (flat faces, sharp edges). Torch runs on one thread here: on a
+to a box cloud from evaluation.shapes (flat faces, sharp edges). Torch runs on one thread here: on a
 shared two-core machine, two OpenMP threads competing with another process run 10-50x slower.
 """
 
@@ -47,7 +47,7 @@ def _fitted() -> ImplicitNetwork:
     from core import network as network_module
     from core.fit import fit
     from core.params import FitParams
-    from core.shapes import sample_shape
+    from evaluation.shapes import sample_shape
 
     cloud = sample_shape("box", n_points=3000, seed=0).points
     kernels = network_module._kernels

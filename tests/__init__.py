@@ -1,0 +1,1 @@
+"""edgerecon's tests, one folder per package (run: pytest)."""

@@ -1,0 +1,339 @@
+"""worker.store.JobStore: the job state machine, in-process against a real redis-server.
+
+Every move of queued -> running -> succeeded | failed | canceled (and queued -> canceled), what
+each refuses, and the races between the API, a worker and the crash verdict: the first write wins,
+and a late write from a worker whose job moved on changes nothing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import threading
+import uuid
+
+import numpy as np
+import pytest
+from redis.asyncio import Redis as AsyncRedis
+from rq.job import Job
+from rq.serializers import JSONSerializer
+
+from core.params import FitParams
+from tests.helpers import sphere
+from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobStatus, Progress, Stage, new_job_id
+from worker.errors import InputExpired, InvalidJobId
+from worker.settings import Settings
+from worker.store import JobStore
+
+TTL = 60
+OUTPUTS = {name: f"the content of {name}".encode() for name in OUTPUT_NAMES}
+SUMMARY = {"vertices": 8, "faces": 12, "watertight": True, "edge_points": 3, "timings": {"fit_seconds": 1.5}}
+PARAMS = FitParams(iterations=30, tau=15)
+FITTING = Progress(stage=Stage.FITTING, iteration=3, total=30, losses={"total": 0.5, "eikonal": None}, edge_share=0.1)
+
+
+@pytest.fixture
+def settings() -> Settings:
+    run = f"test-{uuid.uuid4().hex[:12]}"
+    return Settings(key_prefix=run, queue=run, job_ttl=TTL, heartbeat_ttl=5)
+
+
+@pytest.fixture
+def store(redis_server, settings):
+    redis = redis_server.client()
+    yield JobStore(redis, settings)
+    redis.close()
+
+
+def new_job(store: JobStore, points: np.ndarray | None = None) -> str:
+    job_id = new_job_id()
+    store.create(job_id, sphere(300) if points is None else points, PARAMS)
+    return job_id
+
+
+def running_job(store: JobStore, worker: str = "worker-1") -> str:
+    job_id = new_job(store)
+    assert store.start(job_id, worker) == PARAMS
+    return job_id
+
+
+def settings_of(store: JobStore) -> Settings:
+    return Settings(key_prefix=store.prefix, queue=store.queue.name, job_ttl=TTL, heartbeat_ttl=5)
+
+
+def status(store: JobStore, job_id: str) -> JobStatus | None:
+    record = store.get(job_id)
+    return record.status if record else None
+
+
+def kept_outputs(store: JobStore, job_id: str) -> list[str]:
+    return [name for name in OUTPUT_NAMES if store.redis.exists(f"{store.prefix}:job:{job_id}:{name}")]
+
+
+def is_in_running_set(store: JobStore, job_id: str) -> bool:
+    return bool(store.redis.sismember(f"{store.prefix}:running", job_id))
+
+
+def kill_worker_of(store: JobStore, job_id: str) -> None:
+    """What a SIGKILLed worker leaves: its heartbeat for the job lapses."""
+    store.redis.delete(f"{store.prefix}:job:{job_id}:alive")
+
+
+# --- every transition ----------------------------------------------------------------------------
+
+
+def test_a_new_job_is_queued_with_its_input_and_parameters(store):
+    points = sphere(300, seed=4)
+    job_id = new_job(store, points)
+    record = store.get(job_id)
+    assert record is not None
+    assert (record.id, record.status, record.params, record.points) == (job_id, JobStatus.QUEUED, PARAMS, 300)
+    assert record.progress is None and record.started_at is None and record.ended_at is None
+    assert record.error is None and record.result is None and record.worker is None
+    assert record.created_at.tzinfo is not None and record.expires_at is not None
+    assert 0 < (record.expires_at - record.created_at).total_seconds() <= TTL + 1
+    np.testing.assert_array_equal(store.load_points(job_id), points)
+
+
+def test_a_new_job_is_enqueued_for_the_job_function_by_name_with_only_its_id(store):
+    job_id = new_job(store)
+    assert store.queue.job_ids == [job_id]
+    job = Job.fetch(job_id, connection=store.redis, serializer=JSONSerializer)  # JSON: never a pickle
+    assert job.func_name == JOB_FUNCTION and list(job.args) == [job_id] and not job.kwargs
+    from worker.job import run_reconstruction
+
+    module, _, name = JOB_FUNCTION.rpartition(".")
+    assert getattr(importlib.import_module(module), name) is run_reconstruction
+
+
+def test_start_moves_a_queued_job_to_running_and_returns_its_parameters(store):
+    job_id = new_job(store)
+    assert store.start(job_id, "worker-1") == PARAMS
+    record = store.get(job_id)
+    assert record.status == JobStatus.RUNNING and record.worker == "worker-1" and record.started_at
+    assert record.progress == Progress(stage=Stage.STARTING, iteration=0, total=0)
+    assert is_in_running_set(store, job_id) and store.is_running(job_id)
+    assert store.redis.get(f"{store.prefix}:job:{job_id}:alive") == b"worker-1"  # its heartbeat
+
+
+def test_a_job_starts_only_once(store):
+    job_id = running_job(store, "worker-1")
+    started_at = store.get(job_id).started_at
+    assert store.start(job_id, "worker-2") is None
+    record = store.get(job_id)
+    assert record.worker == "worker-1" and record.started_at == started_at
+
+
+def test_progress_of_a_running_job_is_recorded_and_restarts_every_expiry(store):
+    job_id = running_job(store)
+    for key in store.redis.keys(f"{store.prefix}:job:{job_id}*"):
+        store.redis.expire(key, 5)
+    assert store.set_progress(job_id, FITTING)
+    assert store.get(job_id).progress == FITTING
+    ttls = [store.redis.ttl(f"{store.prefix}:job:{job_id}{part}") for part in ("", ":points")]
+    assert all(TTL - 2 <= ttl <= TTL for ttl in ttls), ttls
+
+
+def test_succeed_stores_the_outputs_and_the_summary(store):
+    job_id = running_job(store)
+    assert store.succeed(job_id, OUTPUTS, SUMMARY)
+    record = store.get(job_id)
+    assert record.status == JobStatus.SUCCEEDED and record.ended_at and record.result == SUMMARY
+    assert record.error is None
+    for name in OUTPUT_NAMES:
+        assert store.output(job_id, name) == (JobStatus.SUCCEEDED, OUTPUTS[name])
+    assert not is_in_running_set(store, job_id) and not store.is_running(job_id)
+
+
+def test_every_key_of_a_job_expires_together(store):
+    job_id = running_job(store)
+    store.succeed(job_id, OUTPUTS, SUMMARY)
+    parts = ("", ":points", *(f":{name}" for name in OUTPUT_NAMES))
+    ttls = [store.redis.ttl(f"{store.prefix}:job:{job_id}{part}") for part in parts]
+    assert all(0 < ttl <= TTL for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls
+
+
+def test_fail_records_a_reason_the_user_can_read(store):
+    job_id = running_job(store)
+    assert store.fail(job_id, "there is no surface")
+    record = store.get(job_id)
+    assert record.status == JobStatus.FAILED and record.error == "there is no surface" and record.ended_at
+    assert not is_in_running_set(store, job_id)
+
+
+def test_cancel_of_a_queued_job_takes_it_off_the_queue(store):
+    job_id = new_job(store)
+    assert store.cancel(job_id) == JobStatus.QUEUED
+    record = store.get(job_id)
+    assert record.status == JobStatus.CANCELED and record.ended_at and record.started_at is None
+    assert store.queue.job_ids == [] and not Job.exists(job_id, connection=store.redis)
+
+
+def test_cancel_of_a_running_job_makes_its_next_progress_write_fail(store):
+    job_id = running_job(store)
+    assert store.cancel(job_id) == JobStatus.RUNNING
+    assert status(store, job_id) == JobStatus.CANCELED
+    assert not store.set_progress(job_id, FITTING) and not store.is_running(job_id)
+    assert store.get(job_id).progress.stage == Stage.STARTING  # the refused write left no trace
+    assert not is_in_running_set(store, job_id)
+
+
+@pytest.mark.parametrize("final", [JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELED])
+def test_a_finished_job_does_not_move_again(store, final):
+    job_id = running_job(store)
+    {
+        JobStatus.SUCCEEDED: lambda: store.succeed(job_id, OUTPUTS, SUMMARY),
+        JobStatus.FAILED: lambda: store.fail(job_id, "first reason"),
+        JobStatus.CANCELED: lambda: store.cancel(job_id),
+    }[final]()
+    before = store.get(job_id)
+    assert store.cancel(job_id) == final  # canceling a canceled job answers "canceled", changes nothing
+    assert store.start(job_id, "worker-2") is None
+    assert not store.set_progress(job_id, FITTING)
+    assert not store.fail(job_id, "second reason")
+    assert not store.succeed(job_id, OUTPUTS, SUMMARY)
+    after = store.get(job_id)
+    assert after.model_dump(exclude={"expires_at"}) == before.model_dump(exclude={"expires_at"})
+    assert kept_outputs(store, job_id) == (list(OUTPUT_NAMES) if final == JobStatus.SUCCEEDED else [])
+
+
+def test_outputs_are_withheld_until_the_job_succeeds(store):
+    job_id = new_job(store)
+    assert store.output(job_id, "mesh.obj") == (JobStatus.QUEUED, None)
+    store.start(job_id, "worker-1")
+    assert store.output(job_id, "mesh.obj") == (JobStatus.RUNNING, None)
+    with pytest.raises(ValueError, match="no output"):
+        store.output(job_id, "points")
+
+
+def test_an_unknown_job_has_no_record_and_nothing_to_cancel(store):
+    unknown = "A" * 22
+    assert store.get(unknown) is None and store.cancel(unknown) is None
+    assert store.output(unknown, "mesh.obj") == (None, None)
+    assert store.start(unknown, "worker-1") is None and not store.set_progress(unknown, FITTING)
+    assert store.redis.keys(f"{store.prefix}:job:{unknown}") == []
+
+
+@pytest.mark.parametrize("bad", ["abc", "A" * 23, "../../etc/passwd", "A" * 21 + "*"])
+def test_a_malformed_id_never_becomes_a_key(store, bad):
+    for call in (store.get, store.cancel, store.load_points, lambda job_id: store.start(job_id, "w")):
+        with pytest.raises(InvalidJobId):
+            call(bad)
+    assert store.redis.keys(f"{store.prefix}:*") == []
+
+
+def test_an_expired_input_is_a_typed_error(store):
+    job_id = new_job(store)
+    store.redis.delete(f"{store.prefix}:job:{job_id}:points")
+    with pytest.raises(InputExpired, match="input has expired"):
+        store.load_points(job_id)
+
+
+# --- races -----------------------------------------------------------------------------------------
+
+
+def test_cancel_before_start_means_the_job_never_runs(store):
+    job_id = new_job(store)
+    store.cancel(job_id)
+    assert store.start(job_id, "worker-1") is None
+    record = store.get(job_id)
+    assert record.status == JobStatus.CANCELED and record.started_at is None and record.progress is None
+
+
+def test_start_before_cancel_then_the_worker_stops_and_its_outputs_are_dropped(store):
+    job_id = running_job(store)
+    assert store.cancel(job_id) == JobStatus.RUNNING
+    assert not store.set_progress(job_id, FITTING)
+    assert not store.succeed(job_id, OUTPUTS, SUMMARY)
+    record = store.get(job_id)
+    assert record.status == JobStatus.CANCELED and record.result is None
+    assert kept_outputs(store, job_id) == []
+
+
+def test_succeed_before_cancel_keeps_the_result(store):
+    job_id = running_job(store)
+    assert store.succeed(job_id, OUTPUTS, SUMMARY)
+    assert store.cancel(job_id) == JobStatus.SUCCEEDED
+    assert status(store, job_id) == JobStatus.SUCCEEDED and kept_outputs(store, job_id) == list(OUTPUT_NAMES)
+
+
+def test_cancel_and_succeed_at_once_leave_one_consistent_outcome(store):
+    """Many jobs, each canceled by one thread while another finishes it: whichever write came first
+    decides, and the answers, the status and the kept outputs always agree."""
+    jobs = [running_job(store) for _ in range(40)]
+    canceled: dict[str, JobStatus | None] = {}
+    succeeded: dict[str, bool] = {}
+    start = threading.Barrier(2)
+
+    def cancel_all():
+        start.wait()
+        for job_id in jobs:
+            canceled[job_id] = store.cancel(job_id)
+
+    def succeed_all():
+        start.wait()
+        for job_id in reversed(jobs):
+            succeeded[job_id] = store.succeed(job_id, OUTPUTS, SUMMARY)
+
+    threads = [threading.Thread(target=cancel_all), threading.Thread(target=succeed_all)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    for job_id in jobs:
+        if succeeded[job_id]:
+            assert canceled[job_id] == JobStatus.SUCCEEDED and status(store, job_id) == JobStatus.SUCCEEDED
+            assert kept_outputs(store, job_id) == list(OUTPUT_NAMES)
+        else:
+            assert canceled[job_id] == JobStatus.RUNNING and status(store, job_id) == JobStatus.CANCELED
+            assert kept_outputs(store, job_id) == []
+
+
+def test_reading_a_job_whose_worker_died_fails_it_as_orphaned(store):
+    job_id = running_job(store)
+    kill_worker_of(store, job_id)
+    record = store.get(job_id)
+    assert record.status == JobStatus.FAILED and record.error == ORPHANED and record.ended_at
+    assert not is_in_running_set(store, job_id)
+
+
+def test_reading_asynchronously_fails_an_orphan_too(store, redis_server):
+    job_id = running_job(store)
+    kill_worker_of(store, job_id)
+
+    async def read():
+        async with AsyncRedis.from_url(redis_server.url) as client:
+            return await JobStore(store.redis, settings_of(store), client).get_async(job_id)
+
+    record = asyncio.run(read())
+    assert record.status == JobStatus.FAILED and record.error == ORPHANED
+    assert status(store, job_id) == JobStatus.FAILED
+
+
+def test_the_sweep_fails_only_the_jobs_whose_worker_died(store):
+    alive, dead = running_job(store, "worker-1"), running_job(store, "worker-2")
+    kill_worker_of(store, dead)
+    assert store.fail_orphans() == [dead]
+    assert status(store, dead) == JobStatus.FAILED and status(store, alive) == JobStatus.RUNNING
+    assert store.fail_orphans() == []
+
+
+def test_the_sweep_forgets_running_jobs_whose_record_expired(store):
+    job_id = running_job(store)
+    store.redis.delete(f"{store.prefix}:job:{job_id}", f"{store.prefix}:job:{job_id}:alive")
+    assert store.fail_orphans() == []
+    assert not is_in_running_set(store, job_id)
+
+
+def test_a_late_write_from_a_killed_worker_changes_nothing(store):
+    """The worker was only presumed dead (its heartbeat lapsed, say a long pause): once its job is
+    failed as orphaned, its progress, result or failure arrive too late and are dropped."""
+    job_id = running_job(store)
+    kill_worker_of(store, job_id)
+    assert store.fail_orphans() == [job_id]
+    assert not store.set_progress(job_id, FITTING)
+    assert not store.succeed(job_id, OUTPUTS, SUMMARY)
+    assert not store.fail(job_id, "the worker's own reason")
+    record = store.get(job_id)
+    assert record.status == JobStatus.FAILED and record.error == ORPHANED and record.result is None
+    assert kept_outputs(store, job_id) == [] and not store.is_running(job_id)
