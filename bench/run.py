@@ -8,7 +8,7 @@ and worker throughput. Prints markdown tables and writes them to bench/results/l
     .venv/bin/python bench/run.py --only throughput                # 1 worker x 2 threads vs 2 x 1
 
 Quality: every (configuration, cloud) pair is fitted in a fresh process (so its peak memory is
-its own), then scored with core.metrics against the ground truth in ../shared/data (see that
+its own), then scored with evaluation.metrics against the ground truth in ../shared/data (see that
 folder's README). Configurations differ only in the loss: ``igr`` (no Laplacian term), ``lap``
 (the paper's quadratic Laplacian on every point), ``lap+des`` (the paper's method: quadratic,
 dynamic edge sampling), ``default`` (what edgerecon ships). All use the shipped schedule,
@@ -34,7 +34,7 @@ import statistics
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,7 +93,7 @@ def main() -> int:
 
     parts = args.only or ["quality", "steps", "throughput"]
     command = "python bench/run.py " + " ".join(sys.argv[1:])
-    sections = [f"Made by `{command.strip()}` on {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {machine()}."]
+    sections = [f"Made by `{command.strip()}` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {machine()}."]
     if "quality" in parts:
         sections.append(quality(args.configs.split(","), args.clouds.split(","), args.data, overrides))
     if "steps" in parts:
@@ -111,10 +111,19 @@ def main() -> int:
 def machine() -> str:
     import torch
 
-    return f"{os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads, Python {platform.python_version()}"
+    threads = torch.get_num_threads()
+    return f"{os.cpu_count()} cores, torch {torch.__version__}, {threads} threads, Python {platform.python_version()}"
 
 
 # --- quality ---------------------------------------------------------------------------------
+
+
+def configure_core(threads: int | None = None, tune_malloc: bool = True) -> None:
+    """Set up this process as ``edgerecon fit`` and the worker do (EDGERECON_COMPILE is honoured)."""
+    from core.runtime import configure
+    from worker.settings import Settings
+
+    configure(compile=Settings().compile, threads=threads, tune_malloc=tune_malloc)
 
 
 def params_for(config: str, overrides: dict):
@@ -125,10 +134,11 @@ def params_for(config: str, overrides: dict):
 
 def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     """Fit one cloud with one configuration in this process; its scores, times and peak memory."""
-    from core.metrics import evaluate_shape
     from core.ply import read_points
     from core.reconstruct import reconstruct
+    from evaluation.sample_data import evaluate_shape
 
+    configure_core()
     shape, _, points_file = cloud.partition("/")
     points_file = points_file or "points.ply"
     points = read_points(data / shape / points_file)
@@ -208,8 +218,9 @@ def steps(overrides: dict, repeats: int = 30) -> str:
     from core.fit import matmul_dtype_for, step_loss
     from core.network import ImplicitNetwork
     from core.sampling import FreeSpace, draw_batch, local_scales
-    from core.shapes import sample_shape
+    from evaluation.shapes import sample_shape
 
+    configure_core(tune_malloc=False)  # as before: the step's own allocations, glibc's defaults
     params = params_for("default", overrides)
     points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
     cloud = torch.as_tensor(points, dtype=torch.float32)
@@ -238,13 +249,15 @@ def steps(overrides: dict, repeats: int = 30) -> str:
     lines = [
         "## One training step",
         "",
-        f"{params.batch_points} input points, {len(samples)} eikonal samples, width {params.width}, depth {params.depth}, "
-        f"{torch.get_num_threads()} threads; median of {repeats} alternated runs after 3 warm-ups. GFLOP/s counts the "
-        "matrix products of the forward and backward passes (the element-wise work is not counted). Peaks: "
+        f"{params.batch_points} input points, {len(samples)} eikonal samples, width {params.width}, "
+        f"depth {params.depth}, {torch.get_num_threads()} threads; median of {repeats} alternated runs after 3 "
+        "warm-ups. GFLOP/s counts the matrix products of the forward and backward passes (the element-wise work "
+        "is not counted). Peaks: "
         + ", ".join(f"{name} {value:.0f} GFLOP/s" for name, value in peak.items())
         + " (a 16,384 x 256 by 256 x 256 product, median of 30).",
         "",
-        "| step | matmul dtype | median ms | vs eikonal only | GFLOP/s | of the float32 peak | of the same dtype's peak |",
+        "| step | matmul dtype | median ms | vs eikonal only | GFLOP/s | of the float32 peak "
+        "| of the same dtype's peak |",
         "|---|---|---|---|---|---|---|",
     ]
     for dtype_name in dtypes:
@@ -255,8 +268,8 @@ def steps(overrides: dict, repeats: int = 30) -> str:
             flops = step_flops(rows_all, laplacian_rows, params.width, params.depth)
             gflops = flops / ms / 1e6
             lines.append(
-                f"| {name} | {dtype_name} | {ms:.1f} | {ms / base:.2f}x | {gflops:.0f} | {gflops / peak['float32']:.0%} | "
-                f"{gflops / peak[dtype_name]:.0%} |"
+                f"| {name} | {dtype_name} | {ms:.1f} | {ms / base:.2f}x | {gflops:.0f} | "
+                f"{gflops / peak['float32']:.0%} | {gflops / peak[dtype_name]:.0%} |"
             )
     reference = ImplicitNetwork(params.width, params.depth, params.beta)
     x = torch.cat([batch, samples])
@@ -303,7 +316,8 @@ def matmul_peak(dtype) -> float:
 def throughput(data: Path, overrides: dict, jobs: int = 4) -> str:
     cloud = data / "box_hole" / "points.ply"
     script = (
-        "import sys, torch; torch.set_num_threads(int(sys.argv[1]));"
+        "import sys; from core.runtime import configure; from worker.settings import Settings;"
+        "configure(compile=Settings().compile, threads=int(sys.argv[1]));"
         "from core.ply import read_points; from core.params import FitParams; from core.reconstruct import reconstruct;"
         f"params = FitParams(**{overrides!r}); points = read_points({str(cloud)!r});"
         "[reconstruct(points, params) for _ in range(int(sys.argv[2]))]"

