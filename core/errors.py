@@ -1,6 +1,6 @@
 """The typed errors of the core; each message is meant for the user who sent the input."""
 
-from typing import Callable
+from collections.abc import Callable
 
 # A function the core polls during long work; when it returns True the work raises Cancelled.
 CancelCheck = Callable[[], bool]

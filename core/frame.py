@@ -15,7 +15,7 @@ class Frame:
     scale: float
 
     @classmethod
-    def of(cls, points: np.ndarray) -> "Frame":
+    def of(cls, points: np.ndarray) -> Frame:
         """The frame of a cloud: its bounding-box centre and largest extent."""
         low, high = points.min(axis=0), points.max(axis=0)
         return cls(center=(low + high) / 2, scale=float((high - low).max()))

@@ -209,8 +209,8 @@ def _property(words: list[str]) -> Property | None:
     return None
 
 
-def _read_binary_vertices(data: bytes, header: Header) -> np.ndarray:
-    """The vertex rows as a structured array viewed on ``data``; other elements are skipped.
+def _read_binary_vertices(data: bytes, header: Header) -> dict[str, np.ndarray]:
+    """The vertex properties by name, viewed on ``data`` (nothing is copied); other elements are skipped.
 
     Every element must fit in the file (at its smallest row size for rows with lists), so a
     truncated file or a huge declared count is refused without allocating anything.
@@ -239,7 +239,7 @@ def _read_binary_vertices(data: bytes, header: Header) -> np.ndarray:
             f"malformed binary PLY: the file holds {len(data) - offset} bytes more than its header declares"
         )
     assert vertices is not None  # read_points checked that there is a vertex element
-    return vertices
+    return {name: vertices[name] for name in vertices.dtype.names or ()}
 
 
 def _read_ascii_vertices(data: bytes, header: Header, vertex: Element) -> dict[str, np.ndarray]:
