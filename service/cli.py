@@ -61,6 +61,8 @@ def _add_param_options(parser: argparse.ArgumentParser) -> None:
 def _fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from worker.settings import Settings
+
     given = {name: getattr(args, name) for name in FitParams.model_fields if getattr(args, name) is not None}
     try:
         params = FitParams(**given)
@@ -69,12 +71,17 @@ def _fit(args: argparse.Namespace) -> int:
             print(f"edgerecon: --{problem['loc'][0]}: {problem['msg']}", file=sys.stderr)
         return 2
     try:
+        settings = Settings()
+    except ValidationError as error:
+        for problem in error.errors():
+            print(f"edgerecon: EDGERECON_{str(problem['loc'][0]).upper()}: {problem['msg']}", file=sys.stderr)
+        return 2
+    try:
         from core.ply import read_points
         from core.reconstruct import reconstruct, write_outputs
         from core.runtime import configure
-        from worker.settings import Settings
 
-        configure(compile=Settings().compile)
+        configure(compile=settings.compile)
         points = read_points(args.input)
         bar = tqdm(total=params.iterations, unit="it", desc="fitting", dynamic_ncols=True)
 

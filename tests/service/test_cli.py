@@ -144,6 +144,16 @@ def test_errors_exit_nonzero_with_one_line_and_no_output(tmp_path, kind, options
     assert sorted(p.name for p in tmp_path.iterdir()) == before, "an output or staging folder was left"
 
 
+def test_a_bad_setting_in_the_environment_exits_2_with_one_line_naming_it(tmp_path):
+    env = {**os.environ, "EDGERECON_COMPILE": "perhaps", "PYTHONWARNINGS": "ignore"}
+    result = subprocess.run(
+        [*command(), "fit", str(EXAMPLE), "--out", str(tmp_path / "out")], env=env, capture_output=True, text=True
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().startswith("edgerecon: EDGERECON_COMPILE: ") and len(result.stderr.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
 def test_unparsable_option_value_is_an_argparse_error(tmp_path):
     result = run("fit", EXAMPLE, "--out", tmp_path / "out", "--resolution", "abc", cwd=tmp_path)
     assert result.returncode == 2
