@@ -34,6 +34,7 @@ from core.errors import PointCloudError
 from core.params import FitParams
 from core.ply import read_points
 from service.middleware import RequestGuard
+from service.page import router as page_router
 from worker.connection import connect, connect_async
 from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
 from worker.registry import WorkerRegistry
@@ -275,6 +276,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.include_router(v1)
     app.include_router(health)
+    app.include_router(page_router)  # the web page: GET / and /static, outside the OpenAPI schema
     app.add_exception_handler(RedisError, _redis_unavailable)
     app.add_exception_handler(Exception, _internal_error)
     api_key = settings.api_key.get_secret_value() if settings.api_key else None
