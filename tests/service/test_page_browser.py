@@ -41,7 +41,17 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from service.app import create_app
 from service.page import router as page_router
-from tests.helpers import EXAMPLE_CLOUD, ROOT, TEST_ENV, clean_environ, stop_process, wait_for
+from tests.helpers import (
+    EXAMPLE_CLOUD,
+    ROOT,
+    TEST_ENV,
+    clean_environ,
+    ply_ascii,
+    ply_binary,
+    ply_header,
+    stop_process,
+    wait_for,
+)
 from worker.redis_server import free_port
 from worker.settings import Settings
 
@@ -182,6 +192,14 @@ def wait_status(page, status: str, timeout: float) -> None:
     )
 
 
+# Drops a file with this name and text on the page's drop box.
+DROP_FILE = """([name, text]) => {
+    const transfer = new DataTransfer();
+    transfer.items.add(new File([text], name));
+    document.getElementById('drop-zone').dispatchEvent(new DragEvent('drop', {dataTransfer: transfer, bubbles: true}));
+}"""
+
+
 # --- the tests ------------------------------------------------------------------------------------
 
 
@@ -284,7 +302,9 @@ def test_api_errors_are_shown_as_the_api_says_them(service, page, tmp_path):
     open_page(page, service, API_KEY)
     not_a_cloud = tmp_path / "notes.ply"
     not_a_cloud.write_text("these are notes, not a point cloud\n")
-    page.set_input_files("#file", str(not_a_cloud))
+    page.evaluate(DROP_FILE, ["notes.ply", not_a_cloud.read_text()])  # dropped on the box, as from a file manager
+    page.wait_for_function("document.getElementById('file-info').textContent.includes('not a PLY file')")
+    assert "notes.ply" in page.inner_text("#file-info")
     page.click("#submit")
     page.wait_for_selector("#submit-error:not([hidden])")
     detail = httpx.post(f"{service}/v1/jobs", files={"points": ("notes.ply", not_a_cloud.read_bytes())},
@@ -313,6 +333,8 @@ def _stand_in_api():
     before the final state, which the page must notice and poll for."""
     schema = create_app(Settings(redis_url="redis://127.0.0.1:1/0")).openapi()
     app = FastAPI(openapi_url=None)
+    app.state.forms = []  # the fields of every submitted form, but the file
+    app.state.files = {}  # files a test hands to the page: GET /test-files/{name}
     app.include_router(page_router)
     jobs: dict[str, dict] = {}
     now = datetime.now(UTC).isoformat()
@@ -372,6 +394,7 @@ def _stand_in_api():
         form = await request.form()
         job_id = secrets.token_urlsafe(16)[:22]
         jobs[job_id] = {"breaks": form.get("seed") == "1"}
+        app.state.forms.append({name: value for name, value in form.items() if name != "points"})
         return view(job_id, "queued")
 
     @app.get("/v1/jobs/{job_id}")
@@ -399,6 +422,10 @@ def _stand_in_api():
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
+    @app.get("/test-files/{name}")
+    def test_file(name: str):
+        return Response(app.state.files[name], media_type="application/octet-stream")
+
     @app.get("/v1/jobs/{job_id}/{name}")
     def output(job_id: str, name: str):
         return Response(outputs[name], media_type="application/json" if name.endswith(".json") else "text/plain")
@@ -414,14 +441,20 @@ def stand_in():
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     wait_for(lambda: server.started, 20, 0.05, "the stand-in API to start")
-    yield f"http://127.0.0.1:{port}"
+    yield f"http://127.0.0.1:{port}", server.config.app
     server.should_exit = True
     thread.join(10)
 
 
 def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(stand_in, page):
-    open_page(page, stand_in, None)
+    url, app = stand_in
+    open_page(page, url, None)
+    page.click("#params summary")
+    page.uncheck("#param-edge_sampling")
+    page.select_option("#param-laplacian_penalty", "quadratic")
     submit(page, EXAMPLE_CLOUD, {"iterations": 50})
+    # Only what was changed is sent, booleans and choices as the API reads them.
+    assert app.state.forms[-1] == {"iterations": "50", "edge_sampling": "false", "laplacian_penalty": "quadratic"}
     wait_status(page, "succeeded", timeout=20)
     assert page.inner_text("#job-updates") == "Updates: live: event stream."
     assert page.eval_on_selector("#job-progress", "bar => [bar.value, bar.max]") == [50, 50]
@@ -445,6 +478,45 @@ def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(sta
     set_checkbox(page, "#show-normals", True)
 
     # A stream that ends before the final state: the page polls instead, and gets there.
+    page.click("#reset-params")
     submit(page, EXAMPLE_CLOUD, {"iterations": 50, "seed": 1})
+    assert app.state.forms[-1] == {"iterations": "50", "seed": "1"}
     wait_status(page, "succeeded", timeout=20)
     assert "the event stream ended early" in page.inner_text("#job-updates")
+
+
+def test_the_page_reads_ply_files_of_every_kind_and_samples_big_ones(stand_in, page, tmp_path):
+    """formats.js, in the browser: ASCII and binary of both byte orders, another element before the
+    vertices, extra vertex properties; at most 50,000 points drawn from a bigger cloud."""
+    url, app = stand_in
+    page.goto(url + "/")
+    rng = np.random.default_rng(1)
+    small = rng.normal(size=(300, 3)).astype(np.float32)
+    big = rng.normal(size=(120_000, 3)).astype(np.float32)
+    extra = "property uchar red\n"
+    before = "element camera 1\nproperty float f\n"
+    clouds = {
+        "ascii": ply_ascii(small),
+        "little": ply_binary(small),
+        "big": ply_header("binary_big_endian", len(small)) + small.astype(">f4").tobytes(),
+        "extra": ply_header("binary_little_endian", len(small), extra).replace(b"element vertex", before.encode() +
+                 b"element vertex") + np.float32(7).tobytes() + b"".join(p.tobytes() + b"\x01" for p in small),
+        "ascii_extra": b"ply\nformat ascii 1.0\n" + before.encode() + b"element vertex 300\nproperty float x\n"
+                       b"property float y\nproperty float z\n" + extra.encode() + b"end_header\n7\n" +
+                       "".join(f"{x:.6f} {y:.6f} {z:.6f} 1\n" for x, y, z in small).encode(),
+        "sampled": ply_binary(big),
+    }  # fmt: skip
+    app.state.files.update(clouds)
+    read = """async (name) => {
+        const {readPlySample} = await import('./static/js/formats.js');
+        const sample = readPlySample(await (await fetch(`test-files/${name}`)).arrayBuffer(), 50000);
+        return {total: sample.total, indices: Array.from(sample.indices), positions: Array.from(sample.positions)};
+    }"""
+    for name in clouds:
+        sample = page.evaluate(read, name)
+        source = big if name == "sampled" else small
+        indices = np.array(sample["indices"])
+        assert sample["total"] == len(source), name
+        assert len(indices) == min(len(source), 50_000) and np.all(np.diff(indices) > 0), name
+        positions = np.array(sample["positions"]).reshape(-1, 3)
+        np.testing.assert_allclose(positions, source[indices], atol=1e-5, err_msg=name)
