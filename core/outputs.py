@@ -1,4 +1,4 @@
-"""The three output files of a reconstruction: their names, and the one way to write them to disk.
+"""The output files of a reconstruction: their names, and the one way to write them to disk.
 
 No torch here: the API names the outputs too.
 """
@@ -11,7 +11,12 @@ import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
+# What a job of the service stores (and lists in its links once it succeeded).
 OUTPUT_NAMES = ("mesh.obj", "normals.json", "edges.json")
+# What ``edgerecon fit`` writes unless told otherwise.
+FIT_OUTPUTS = ("mesh.obj", "normals.json", "edges.json")
+# The mesh's formats (``mesh.<format>``; ``core.mesh_formats`` makes them): jobs store the OBJ.
+MESH_FORMATS = ("obj", "ply", "stl", "glb")
 
 
 def write_atomically(files: Mapping[str, bytes], directory: str | os.PathLike[str]) -> Path:

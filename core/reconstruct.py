@@ -1,10 +1,12 @@
-"""One reconstruction end to end: normalise, fit, extract, and write the three outputs."""
+"""One reconstruction end to end: normalise, fit, extract, and write the outputs."""
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,8 @@ from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian
 from core.fit import fit
 from core.frame import Frame
-from core.outputs import OUTPUT_NAMES, write_atomically
+from core.mesh_formats import mesh_file
+from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, write_atomically
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
 
@@ -37,7 +40,7 @@ class Reconstruction:
 
     def mesh_obj(self) -> bytes:
         """The mesh as Wavefront OBJ text."""
-        return trimesh.exchange.obj.export_obj(self.mesh, include_normals=False, include_texture=False).encode()
+        return mesh_file(self.mesh, "obj")
 
     def normals_json(self) -> bytes:
         """``{"normals": [[nx, ny, nz], ...]}``, one unit vector per input point, input order."""
@@ -55,9 +58,15 @@ class Reconstruction:
             }
         ).encode()
 
-    def outputs(self) -> dict[str, bytes]:
-        """The three output files by name (``core.outputs.OUTPUT_NAMES``)."""
-        return dict(zip(OUTPUT_NAMES, (self.mesh_obj(), self.normals_json(), self.edges_json())))
+    def outputs(self, names: Iterable[str] = OUTPUT_NAMES) -> dict[str, bytes]:
+        """The output files ``names`` by name: those a job stores (``core.outputs.OUTPUT_NAMES``) by
+        default; ``mesh.<format>`` for any of ``core.mesh_formats.MESH_FORMATS``."""
+        makers = {"normals.json": self.normals_json, "edges.json": self.edges_json}
+        makers.update({f"mesh.{fmt}": partial(mesh_file, self.mesh, fmt) for fmt in MESH_FORMATS})
+        unknown = [name for name in names if name not in makers]
+        if unknown:
+            raise ValueError(f"no output called {', '.join(unknown)}")
+        return {name: makers[name]() for name in names}
 
     def summary(self) -> dict:
         """Counts and timings, as a JSON-ready dict."""
@@ -104,7 +113,7 @@ def reconstruct(
     )
 
 
-def write_outputs(reconstruction: Reconstruction, directory: str | Path) -> Path:
-    """Write ``mesh.obj``, ``normals.json`` and ``edges.json`` into ``directory``, all or none
-    (``core.outputs.write_atomically``); return the folder."""
-    return write_atomically(reconstruction.outputs(), directory)
+def write_outputs(reconstruction: Reconstruction, directory: str | Path, names: Iterable[str] = FIT_OUTPUTS) -> Path:
+    """Write the outputs ``names`` (default ``mesh.obj``, ``normals.json`` and ``edges.json``) into
+    ``directory``, all or none (``core.outputs.write_atomically``); return the folder."""
+    return write_atomically(reconstruction.outputs(names), directory)

@@ -11,6 +11,7 @@ from typing import Any, Literal, cast, get_args, get_origin
 from pydantic import ValidationError
 
 from core.errors import EdgereconError
+from core.outputs import MESH_FORMATS
 from core.params import FitParams
 from core.progress import Progress, Stage
 
@@ -18,9 +19,17 @@ from core.progress import Progress, Stage
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="edgerecon", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
-    fit_parser = commands.add_parser("fit", help="reconstruct a PLY cloud into DIR/mesh.obj, normals.json, edges.json")
+    fit_parser = commands.add_parser(
+        "fit", help="reconstruct a PLY cloud into DIR/mesh.obj (or --format), normals.json, edges.json"
+    )
     fit_parser.add_argument("input", type=Path, help="the point cloud, a PLY file")
     fit_parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    fit_parser.add_argument(
+        "--format",
+        type=_mesh_formats,
+        default=("obj",),
+        help=f"the mesh's formats, comma-separated, of {','.join(MESH_FORMATS)} (default obj): DIR/mesh.<format> each",
+    )
     _add_param_options(fit_parser)
     serve_parser = commands.add_parser(
         "serve", help="start the service: the API, N workers, and its own Redis when REDIS_URL is unset"
@@ -41,6 +50,17 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_worker()
     return 2
+
+
+def _mesh_formats(text: str) -> tuple[str, ...]:
+    """``--format``: a comma-separated list of mesh formats, in the order given, without repeats."""
+    formats = tuple(dict.fromkeys(name.strip().lower() for name in text.split(",") if name.strip()))
+    unknown = [name for name in formats if name not in MESH_FORMATS]
+    if unknown or not formats:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected formats among {', '.join(MESH_FORMATS)}, comma-separated (e.g. obj,ply,glb)"
+        )
+    return formats
 
 
 def _add_param_options(parser: argparse.ArgumentParser) -> None:
@@ -98,7 +118,8 @@ def _fit(args: argparse.Namespace) -> int:
             result = reconstruct(points, params, progress=progress)
         finally:
             bar.close()
-        write_outputs(result, args.out)
+        names = [*(f"mesh.{fmt}" for fmt in args.format), "normals.json", "edges.json"]
+        write_outputs(result, args.out, names)
     except (EdgereconError, OSError) as error:
         print(f"edgerecon: {error}", file=sys.stderr)
         return 1
@@ -106,8 +127,9 @@ def _fit(args: argparse.Namespace) -> int:
         print("edgerecon: interrupted", file=sys.stderr)
         return 130
     summary = result.summary()
+    meshes = ", ".join(f"mesh.{fmt}" for fmt in args.format)
     print(
-        f"wrote {args.out}/mesh.obj ({summary['vertices']} vertices, {summary['faces']} faces), "
+        f"wrote {args.out}/{meshes} ({summary['vertices']} vertices, {summary['faces']} faces), "
         f"normals.json, edges.json ({summary['edge_points']} edge points) "
         f"in {summary['timings']['fit_seconds']:.1f} s fit + {summary['timings']['extract_seconds']:.1f} s extraction"
     )

@@ -176,3 +176,32 @@ def test_failure_after_fitting_leaves_no_staging_folder(tmp_path, monkeypatch, c
     assert "edgerecon:" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     assert (tmp_path / "out").read_text() == "in the way"
+
+
+def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_path, monkeypatch, capsys):
+    """In-process, on a tiny fit: ``--format ply,stl,glb,obj`` writes the four meshes through the one writer."""
+    import trimesh
+
+    from core import network
+    from service import cli
+
+    monkeypatch.setenv("EDGERECON_COMPILE", "0")
+    monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
+    tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
+    code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--format", "ply,STL, glb,obj", *tiny])
+    assert code == 0, capsys.readouterr().err
+    written = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert written == ["edges.json", "mesh.glb", "mesh.obj", "mesh.ply", "mesh.stl", "normals.json"]
+    assert "mesh.ply, mesh.stl, mesh.glb, mesh.obj" in capsys.readouterr().out
+    obj = trimesh.load(tmp_path / "out" / "mesh.obj", process=False, force="mesh")
+    for fmt in ("ply", "stl", "glb"):
+        mesh = trimesh.load(tmp_path / "out" / f"mesh.{fmt}", force="mesh")  # STL stores triangles: merged here
+        assert (len(mesh.vertices), len(mesh.faces)) == (len(obj.vertices), len(obj.faces)), fmt
+        np.testing.assert_allclose(mesh.bounds, obj.bounds, atol=1e-5)
+
+
+def test_an_unknown_format_is_refused_before_anything_runs(tmp_path):
+    result = run("fit", EXAMPLE, "--out", tmp_path / "out", "--format", "obj,fbx", cwd=tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "'obj,fbx': expected formats among obj, ply, stl, glb" in result.stderr.splitlines()[-1]
+    assert not (tmp_path / "out").exists()
