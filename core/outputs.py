@@ -12,9 +12,11 @@ from collections.abc import Mapping
 from pathlib import Path
 
 # What a job of the service stores (and lists in its links once it succeeded).
-OUTPUT_NAMES = ("mesh.obj", "normals.json", "edges.json")
-# What ``edgerecon fit`` writes unless told otherwise.
+OUTPUT_NAMES = ("mesh.obj", "normals.json", "edges.json", "preview.json")
+# What ``edgerecon fit`` writes unless told otherwise (preview.json is for the web page's view).
 FIT_OUTPUTS = ("mesh.obj", "normals.json", "edges.json")
+# The most input points preview.json holds: the web page draws them all and stays responsive.
+PREVIEW_POINTS = 50_000
 # The mesh's formats (``mesh.<format>``; ``core.mesh_formats`` makes them): jobs store the OBJ.
 MESH_FORMATS = ("obj", "ply", "stl", "glb")
 

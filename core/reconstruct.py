@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -17,7 +18,7 @@ from core.extract import extract_mesh, normals_and_laplacian
 from core.fit import fit
 from core.frame import Frame
 from core.mesh_formats import mesh_file
-from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, write_atomically
+from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, PREVIEW_POINTS, write_atomically
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
 
@@ -26,7 +27,8 @@ from core.progress import Progress, ProgressCallback, Stage
 class Reconstruction:
     """The outputs of one reconstruction, in the input's coordinates.
 
-    ``edge_laplacian`` holds |Δf| at the edge points in the unit frame, where ``tau`` applies.
+    ``edge_laplacian`` holds |Δf| at the edge points in the unit frame, where ``tau`` applies;
+    ``points`` is the input cloud (preview.json samples it).
     """
 
     mesh: trimesh.Trimesh
@@ -35,6 +37,7 @@ class Reconstruction:
     edge_points: np.ndarray
     edge_laplacian: np.ndarray
     tau: float
+    points: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
 
@@ -58,10 +61,28 @@ class Reconstruction:
             }
         ).encode()
 
+    def preview_json(self, size: int = PREVIEW_POINTS) -> bytes:
+        """``{"total", "points", "normals", "edge"}``: at most ``size`` input points drawn at random
+        (the same ones for the same cloud; in input order), their normals and whether each is an
+        edge point (0 or 1), so that a viewer draws a cloud of any size from a bounded file."""
+        total = len(self.points)
+        chosen = np.arange(total)
+        if total > size:
+            chosen = np.sort(np.random.default_rng(0).choice(total, size, replace=False))
+        edge = np.zeros(total, dtype=np.int8)
+        edge[self.edge_indices] = 1
+        preview = {
+            "total": total,
+            "points": _short(self.points[chosen]).tolist(),
+            "normals": np.round(self.normals[chosen].astype(np.float64), 6).tolist(),
+            "edge": edge[chosen].tolist(),
+        }
+        return json.dumps(preview).encode()
+
     def outputs(self, names: Iterable[str] = OUTPUT_NAMES) -> dict[str, bytes]:
         """The output files ``names`` by name: those a job stores (``core.outputs.OUTPUT_NAMES``) by
         default; ``mesh.<format>`` for any of ``core.mesh_formats.MESH_FORMATS``."""
-        makers = {"normals.json": self.normals_json, "edges.json": self.edges_json}
+        makers = {"normals.json": self.normals_json, "edges.json": self.edges_json, "preview.json": self.preview_json}
         makers.update({f"mesh.{fmt}": partial(mesh_file, self.mesh, fmt) for fmt in MESH_FORMATS})
         unknown = [name for name in names if name not in makers]
         if unknown:
@@ -108,9 +129,18 @@ def reconstruct(
         edge_points=points[edges],
         edge_laplacian=np.abs(laplacian[edges]),
         tau=params.tau,
+        points=points,
         timings={"fit_seconds": fitted - started, "extract_seconds": done - fitted},
         stats=stats,
     )
+
+
+def _short(points: np.ndarray) -> np.ndarray:
+    """``points`` rounded to 7 significant digits of their largest coordinate (float32's precision,
+    which is what a viewer draws with), so that their JSON is short."""
+    largest = float(np.abs(points).max(initial=0.0))
+    decimals = 7 - math.ceil(math.log10(largest)) if largest > 0 else 0
+    return np.round(points, max(decimals, 0))
 
 
 def write_outputs(reconstruction: Reconstruction, directory: str | Path, names: Iterable[str] = FIT_OUTPUTS) -> Path:

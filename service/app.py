@@ -5,6 +5,7 @@
     GET    /v1/jobs/{id}/mesh.obj     the outputs, once the job succeeded (409 before, 404 unknown)
     GET    /v1/jobs/{id}/normals.json
     GET    /v1/jobs/{id}/edges.json
+    GET    /v1/jobs/{id}/preview.json
     DELETE /v1/jobs/{id}              cancel a queued or running job -> 204
     GET    /healthz                   whether Redis answers and how many workers listen (503: Redis down)
 
@@ -43,7 +44,12 @@ from worker.store import JobStore
 
 log = logging.getLogger("edgerecon.api")
 
-MEDIA_TYPES = {"mesh.obj": "model/obj", "normals.json": "application/json", "edges.json": "application/json"}
+MEDIA_TYPES = {
+    "mesh.obj": "model/obj",
+    "normals.json": "application/json",
+    "edges.json": "application/json",
+    "preview.json": "application/json",
+}
 assert set(MEDIA_TYPES) == set(OUTPUT_NAMES)
 
 
@@ -214,6 +220,13 @@ def get_normals(job_id: JobId, store: Store) -> Response:
 def get_edges(job_id: JobId, store: Store) -> Response:
     """``{"tau", "count", "indices", "points", "laplacian"}``: the input points on sharp edges."""
     return _output(store, job_id, "edges.json")
+
+
+@v1.get("/jobs/{job_id}/preview.json", response_class=Response, responses=_OUTPUT_RESPONSES)
+def get_preview(job_id: JobId, store: Store) -> Response:
+    """``{"total", "points", "normals", "edge"}``: at most 50,000 input points drawn at random, their
+    normals and edge flags (0 or 1), for a viewer."""
+    return _output(store, job_id, "preview.json")
 
 
 @health.get("/healthz", response_model=Health, responses={503: {"model": Health, "description": "Redis is down"}})

@@ -30,6 +30,11 @@ def main(argv: list[str] | None = None) -> int:
         default=("obj",),
         help=f"the mesh's formats, comma-separated, of {','.join(MESH_FORMATS)} (default obj): DIR/mesh.<format> each",
     )
+    fit_parser.add_argument(
+        "--preview",
+        action="store_true",
+        help="also write DIR/preview.json: a sample of at most 50,000 input points, their normals and edge flags",
+    )
     _add_param_options(fit_parser)
     serve_parser = commands.add_parser(
         "serve", help="start the service: the API, N workers, and its own Redis when REDIS_URL is unset"
@@ -119,6 +124,7 @@ def _fit(args: argparse.Namespace) -> int:
         finally:
             bar.close()
         names = [*(f"mesh.{fmt}" for fmt in args.format), "normals.json", "edges.json"]
+        names += ["preview.json"] if args.preview else []
         write_outputs(result, args.out, names)
     except (EdgereconError, OSError) as error:
         print(f"edgerecon: {error}", file=sys.stderr)
@@ -130,7 +136,7 @@ def _fit(args: argparse.Namespace) -> int:
     meshes = ", ".join(f"mesh.{fmt}" for fmt in args.format)
     print(
         f"wrote {args.out}/{meshes} ({summary['vertices']} vertices, {summary['faces']} faces), "
-        f"normals.json, edges.json ({summary['edge_points']} edge points) "
+        f"normals.json, edges.json ({summary['edge_points']} edge points){', preview.json' if args.preview else ''} "
         f"in {summary['timings']['fit_seconds']:.1f} s fit + {summary['timings']['extract_seconds']:.1f} s extraction"
     )
     return 0

@@ -66,7 +66,7 @@ def test_submit_poll_cancel_a_queued_job(api):
     with api.client() as client:
         status = client.get(response.headers["location"])
         assert status.status_code == 200 and status.json()["status"] == "queued"
-        for name in ("mesh.obj", "normals.json", "edges.json"):
+        for name in ("mesh.obj", "normals.json", "edges.json", "preview.json"):
             early = client.get(f"/v1/jobs/{job['id']}/{name}")
             assert early.status_code == 409 and "queued" in early.json()["detail"]
         assert api.redis.llen(f"rq:queue:{api.queue}") == 1
@@ -183,6 +183,7 @@ def test_unknown_job_ids_get_404(api):
             ("GET", "/mesh.obj"),
             ("GET", "/normals.json"),
             ("GET", "/edges.json"),
+            ("GET", "/preview.json"),
         ]:
             response = client.request(method, f"/v1/jobs/{unknown}{path}")
             assert response.status_code == 404 and "no job" in response.json()["detail"]

@@ -179,7 +179,8 @@ def test_failure_after_fitting_leaves_no_staging_folder(tmp_path, monkeypatch, c
 
 
 def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_path, monkeypatch, capsys):
-    """In-process, on a tiny fit: ``--format ply,stl,glb,obj`` writes the four meshes through the one writer."""
+    """In-process, on a tiny fit: ``--format ply,stl,glb,obj`` writes the four meshes through the one
+    writer, and ``--preview`` adds preview.json (which a plain fit does not write)."""
     import trimesh
 
     from core import network
@@ -188,10 +189,14 @@ def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_pa
     monkeypatch.setenv("EDGERECON_COMPILE", "0")
     monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
     tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
-    code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--format", "ply,STL, glb,obj", *tiny])
+    code = cli.main(
+        ["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--format", "ply,STL, glb,obj", "--preview", *tiny]
+    )
     assert code == 0, capsys.readouterr().err
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert written == ["edges.json", "mesh.glb", "mesh.obj", "mesh.ply", "mesh.stl", "normals.json"]
+    assert written == ["edges.json", "mesh.glb", "mesh.obj", "mesh.ply", "mesh.stl", "normals.json", "preview.json"]
+    preview = json.loads((tmp_path / "out" / "preview.json").read_text())
+    assert preview["total"] == len(preview["points"]) == len(read_points(EXAMPLE))
     assert "mesh.ply, mesh.stl, mesh.glb, mesh.obj" in capsys.readouterr().out
     obj = trimesh.load(tmp_path / "out" / "mesh.obj", process=False, force="mesh")
     for fmt in ("ply", "stl", "glb"):

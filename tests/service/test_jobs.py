@@ -55,8 +55,8 @@ def _run_to_success(service: Service, cloud: bytes, params: dict, timeout: float
 
 
 def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trimesh.Trimesh:
-    """Download the three outputs, check their formats against the input; return the mesh."""
-    assert set(job["links"]) == {"self", "mesh.obj", "normals.json", "edges.json"}
+    """Download the outputs, check their formats against the input; return the mesh."""
+    assert set(job["links"]) == {"self", "mesh.obj", "normals.json", "edges.json", "preview.json"}
     with service.client() as client:
         mesh_response, normals_response, edges_response = (
             client.get(job["links"][name]) for name in ("mesh.obj", "normals.json", "edges.json")
@@ -82,7 +82,27 @@ def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trim
         assert 0 <= indices.min() and indices.max() < len(points)
         assert np.allclose(np.asarray(edges["points"]), points[indices])
         assert min(edges["laplacian"]) > edges["tau"]
+    _check_preview(service, job, points)
     return mesh
+
+
+def _check_preview(service: Service, job: dict, points: np.ndarray) -> dict:
+    """preview.json: at most 50,000 of the input points (to float32's 7 digits), their unit normals,
+    and whether each is one of edges.json's points."""
+    with service.client() as client:
+        response = client.get(job["links"]["preview.json"])
+        edge_indices = client.get(job["links"]["edges.json"]).json()["indices"]
+    assert response.status_code == 200 and response.headers["content-type"] == "application/json"
+    preview = response.json()
+    assert set(preview) == {"total", "points", "normals", "edge"} and preview["total"] == len(points)
+    sample, normals = np.asarray(preview["points"]), np.asarray(preview["normals"])
+    assert len(sample) == len(normals) == len(preview["edge"]) == min(len(points), 50_000)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
+    distance, index = cKDTree(points).query(sample)
+    assert distance.max() < 1e-5 * np.abs(points).max(), "a preview point is not an input point"
+    assert len(set(index)) == len(sample)  # no point twice
+    assert set(index[np.asarray(preview["edge"]) == 1]) == set(index) & set(edge_indices)
+    return preview
 
 
 def test_end_to_end_on_a_shared_shape(svc):
@@ -112,6 +132,13 @@ def test_end_to_end_on_the_example_cloud(svc, example_cloud):
     assert (mesh.vertices > low - margin).all() and (mesh.vertices < high + margin).all()
     distances = cKDTree(mesh.sample(20_000)).query(points)[0]
     assert distances.mean() < 0.03 * (high - low).max()
+
+
+def test_preview_samples_at_most_50000_points_of_a_bigger_cloud(svc):
+    points = sphere(60_000, seed=3) * 250.0 + 1000.0  # far from the origin: rounding must keep points exact enough
+    job, _ = _run_to_success(svc, ply_binary(points), TINY)
+    preview = _check_preview(svc, job, points.astype(np.float32).astype(np.float64))
+    assert preview["total"] == 60_000 and len(preview["points"]) == 50_000
 
 
 def test_cancel_of_a_queued_job_means_it_never_runs(svc):
