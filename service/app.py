@@ -6,6 +6,9 @@
     GET    /v1/jobs/{id}/normals.json
     GET    /v1/jobs/{id}/edges.json
     GET    /v1/jobs/{id}/preview.json
+    GET    /v1/jobs/{id}/mesh.ply         the mesh in other formats, converted on request (service.formats)
+    GET    /v1/jobs/{id}/mesh.stl
+    GET    /v1/jobs/{id}/mesh.glb
     DELETE /v1/jobs/{id}              cancel a queued or running job -> 204
     GET    /healthz                   whether Redis answers and how many workers listen (503: Redis down)
 
@@ -34,6 +37,8 @@ from redis.exceptions import RedisError
 from core.errors import PointCloudError
 from core.params import FitParams
 from core.ply import read_points
+from service.formats import MESH_FILES
+from service.formats import router as formats_router
 from service.middleware import RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
@@ -82,7 +87,7 @@ class JobView(BaseModel):
         base = f"/v1/jobs/{record.id}"
         links = {"self": base}
         if record.status == JobStatus.SUCCEEDED:
-            links.update({name: f"{base}/{name}" for name in OUTPUT_NAMES})
+            links.update({name: f"{base}/{name}" for name in (*OUTPUT_NAMES, *MESH_FILES)})
         return cls(**record.model_dump(exclude={"worker"}), links=links)
 
 
@@ -289,6 +294,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.include_router(v1)
     app.include_router(health)
+    app.include_router(formats_router)  # the mesh in other formats: mesh.ply, mesh.stl, mesh.glb
     app.include_router(page_router)  # the web page: GET / and /static, outside the OpenAPI schema
     app.add_exception_handler(RedisError, _redis_unavailable)
     app.add_exception_handler(Exception, _internal_error)

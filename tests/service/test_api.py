@@ -66,7 +66,7 @@ def test_submit_poll_cancel_a_queued_job(api):
     with api.client() as client:
         status = client.get(response.headers["location"])
         assert status.status_code == 200 and status.json()["status"] == "queued"
-        for name in ("mesh.obj", "normals.json", "edges.json", "preview.json"):
+        for name in ("mesh.obj", "normals.json", "edges.json", "preview.json", "mesh.ply", "mesh.stl", "mesh.glb"):
             early = client.get(f"/v1/jobs/{job['id']}/{name}")
             assert early.status_code == 409 and "queued" in early.json()["detail"]
         assert api.redis.llen(f"rq:queue:{api.queue}") == 1
@@ -184,6 +184,9 @@ def test_unknown_job_ids_get_404(api):
             ("GET", "/normals.json"),
             ("GET", "/edges.json"),
             ("GET", "/preview.json"),
+            ("GET", "/mesh.ply"),
+            ("GET", "/mesh.stl"),
+            ("GET", "/mesh.glb"),
         ]:
             response = client.request(method, f"/v1/jobs/{unknown}{path}")
             assert response.status_code == 404 and "no job" in response.json()["detail"]
@@ -224,7 +227,7 @@ def test_malformed_job_ids_get_404_without_touching_redis(api):
     try:
         with api.client() as client:
             for job_id in MALFORMED_IDS:
-                for method, path in [("GET", ""), ("DELETE", ""), ("GET", "/mesh.obj")]:
+                for method, path in [("GET", ""), ("DELETE", ""), ("GET", "/mesh.obj"), ("GET", "/mesh.glb")]:
                     answers.append((job_id, client.request(method, f"/v1/jobs/{job_id}{path}")))
     finally:
         done.set()

@@ -23,6 +23,7 @@ from tests.helpers import ENDLESS, SHARED_DATA, TINY, Service, ply_binary, spher
 from worker.settings import Settings
 from worker.store import JobStore
 
+OUTPUTS = ("mesh.obj", "normals.json", "edges.json", "preview.json")
 # Enough fitting for a recognisable surface in a few seconds.
 E2E = {"iterations": 150, "resolution": 48, "width": 64, "depth": 2, "batch_points": 512}
 # A coarse fit followed by a long extraction (a fine grid of a wider network).
@@ -56,7 +57,7 @@ def _run_to_success(service: Service, cloud: bytes, params: dict, timeout: float
 
 def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trimesh.Trimesh:
     """Download the outputs, check their formats against the input; return the mesh."""
-    assert set(job["links"]) == {"self", "mesh.obj", "normals.json", "edges.json", "preview.json"}
+    assert set(job["links"]) == {"self", *OUTPUTS, "mesh.ply", "mesh.stl", "mesh.glb"}
     with service.client() as client:
         mesh_response, normals_response, edges_response = (
             client.get(job["links"][name]) for name in ("mesh.obj", "normals.json", "edges.json")
@@ -68,6 +69,7 @@ def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trim
 
     mesh = trimesh.load(io.BytesIO(mesh_response.content), file_type="obj", process=False)
     assert len(mesh.vertices) == job["result"]["vertices"] and len(mesh.faces) == job["result"]["faces"]
+    _check_mesh_formats(service, job, mesh)
 
     normals = np.asarray(normals_response.json()["normals"])
     assert normals.shape == points.shape
@@ -84,6 +86,21 @@ def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trim
         assert min(edges["laplacian"]) > edges["tau"]
     _check_preview(service, job, points)
     return mesh
+
+
+MESH_MEDIA_TYPES = {"ply": "application/octet-stream", "stl": "model/stl", "glb": "model/gltf-binary"}
+
+
+def _check_mesh_formats(service: Service, job: dict, obj: trimesh.Trimesh) -> None:
+    """mesh.ply, mesh.stl and mesh.glb: each loads in trimesh with the OBJ's vertex and face counts and bounds."""
+    with service.client() as client:
+        for fmt, media_type in MESH_MEDIA_TYPES.items():
+            response = client.get(job["links"][f"mesh.{fmt}"])
+            assert response.status_code == 200 and response.headers["content-type"] == media_type
+            assert response.headers["content-disposition"] == f'attachment; filename="mesh.{fmt}"'
+            mesh = trimesh.load(io.BytesIO(response.content), file_type=fmt, force="mesh")  # STL: vertices merged
+            assert (len(mesh.vertices), len(mesh.faces)) == (len(obj.vertices), len(obj.faces)), fmt
+            np.testing.assert_allclose(mesh.bounds, obj.bounds, rtol=1e-6, atol=1e-6 * np.abs(obj.bounds).max())
 
 
 def _check_preview(service: Service, job: dict, points: np.ndarray) -> dict:
