@@ -9,6 +9,7 @@
     GET    /v1/jobs/{id}/mesh.ply         the mesh in other formats, converted on request (service.formats)
     GET    /v1/jobs/{id}/mesh.stl
     GET    /v1/jobs/{id}/mesh.glb
+    GET    /v1/jobs/{id}/events           Server-Sent Events: the job at every change (service.events)
     DELETE /v1/jobs/{id}              cancel a queued or running job -> 204
     GET    /healthz                   whether Redis answers and how many workers listen (503: Redis down)
 
@@ -37,6 +38,7 @@ from redis.exceptions import RedisError
 from core.errors import PointCloudError
 from core.params import FitParams
 from core.ply import read_points
+from service.events import events_router
 from service.formats import MESH_FILES
 from service.formats import router as formats_router
 from service.middleware import RequestGuard
@@ -295,6 +297,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(v1)
     app.include_router(health)
     app.include_router(formats_router)  # the mesh in other formats: mesh.ply, mesh.stl, mesh.glb
+    app.include_router(events_router(JobView.of))  # live progress: GET /v1/jobs/{id}/events
     app.include_router(page_router)  # the web page: GET / and /static, outside the OpenAPI schema
     app.add_exception_handler(RedisError, _redis_unavailable)
     app.add_exception_handler(Exception, _internal_error)

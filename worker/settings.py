@@ -65,6 +65,16 @@ class Settings(BaseSettings):
         True, description="compile the network's kernels with torch.compile (0: run them eagerly, no compile time)"
     )
 
+    # Live progress (GET /v1/jobs/{id}/events), per API process.
+    max_event_streams: int = Field(
+        100,
+        ge=0,
+        description="event streams one API process serves at once (each holds a Redis connection); 503 beyond",
+    )
+    event_keepalive: float = Field(
+        10.0, gt=0, le=60, description="seconds of silence after which an event stream sends a keep-alive comment"
+    )
+
 
 @lru_cache
 def get_settings() -> Settings:

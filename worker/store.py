@@ -15,6 +15,10 @@ serializer); the parameters and points stay in the record and blobs.
 Crash detection: while a worker runs a job, its heartbeat keeps ``{prefix}:job:{id}:alive`` alive
 (``heartbeat_ttl`` seconds). A ``running`` job without that key belongs to a dead worker and is
 failed when its status is read or by the API's periodic sweep (``fail_orphans``).
+
+Every write of a record is announced on the Redis channel ``{prefix}:job:{id}:changes`` (the new
+status as the message), so that the API's event streams read the record when it changes instead of
+polling it.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from worker.settings import Settings
 # KEYS[1] the record, KEYS[2] the set of running job ids, KEYS[3..] more keys of the job.
 # ARGV[1] allowed statuses (space-separated), ARGV[2] job id, ARGV[3] ttl (0: leave expiries alone),
 # ARGV[4..] field, value, ... to set. Returns the status found (nil: no record); the update was
-# made if and only if that status is one of ARGV[1].
+# made if and only if that status is one of ARGV[1], and then announced on KEYS[1] .. ':changes'.
 _UPDATE_IF = """
 local status = redis.call('HGET', KEYS[1], 'status')
 if not status or not string.find(' ' .. ARGV[1] .. ' ', ' ' .. status .. ' ', 1, true) then
@@ -61,6 +65,7 @@ if tonumber(ARGV[3]) > 0 then
     if i ~= 2 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end
   end
 end
+redis.call('PUBLISH', KEYS[1] .. ':changes', redis.call('HGET', KEYS[1], 'status'))
 return status
 """
 
@@ -92,6 +97,11 @@ class JobStore:
         if not is_job_id(job_id):  # never build a key from unchecked input
             raise InvalidJobId(f"not a job id: {job_id!r}")
         return f"{self.prefix}:job:{job_id}" + (f":{part}" if part else "")
+
+    def changes_channel(self, job_id: str) -> str:
+        """The channel on which every write of the job's record is announced (the Lua script's
+        ``KEYS[1] .. ':changes'``)."""
+        return self._key(job_id, "changes")
 
     def _job_keys(self, job_id: str) -> list[str]:
         """The record, the running set, then every other key of the job (they expire together)."""

@@ -328,6 +328,8 @@ def test_api_key_guards_every_v1_route(redis_server, tmp_path):
             ("GET", "/v1/jobs/" + "A" * 22),
             ("DELETE", "/v1/jobs/" + "A" * 22),
             ("GET", "/v1/jobs/" + "A" * 22 + "/mesh.obj"),
+            ("GET", "/v1/jobs/" + "A" * 22 + "/mesh.glb"),
+            ("GET", "/v1/jobs/" + "A" * 22 + "/events"),
             ("GET", "/v1/nothing"),
         ]
         with service.client() as client:
@@ -340,6 +342,7 @@ def test_api_key_guards_every_v1_route(redis_server, tmp_path):
             good = {"Authorization": "Bearer s3cret"}
             assert client.post("/v1/jobs", headers=good, files=cloud).status_code == 202
             assert client.get("/v1/jobs/" + "A" * 22, headers=good).status_code == 404
+            assert client.get("/v1/jobs/" + "A" * 22 + "/events", headers=good).status_code == 404
             assert client.get("/healthz").status_code == 200  # health and docs stay open
             assert client.get("/docs").status_code == 200
         # Without the key, even a huge declared upload is refused as unauthorized, unread.

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import importlib
 import threading
+import time
 import uuid
 
 import numpy as np
@@ -143,6 +144,21 @@ def test_succeed_stores_the_outputs_and_the_summary(store):
     for name in OUTPUT_NAMES:
         assert store.output(job_id, name) == (JobStatus.SUCCEEDED, OUTPUTS[name])
     assert not is_in_running_set(store, job_id) and not store.is_running(job_id)
+
+
+def test_every_write_of_a_record_is_announced_on_its_channel_with_the_new_status(store):
+    job_id = new_job(store)
+    with store.redis.pubsub(ignore_subscribe_messages=True) as changes:
+        changes.subscribe(store.changes_channel(job_id))
+        store.start(job_id, "worker-1")
+        store.set_progress(job_id, FITTING)
+        store.cancel(job_id)
+        assert not store.set_progress(job_id, FITTING)  # refused: announces nothing
+        heard, deadline = [], time.monotonic() + 2
+        while time.monotonic() < deadline:  # whatever arrives within 2 s
+            if message := changes.get_message(timeout=0.1):
+                heard.append(message["data"].decode())
+    assert heard == ["running", "running", "canceled"]
 
 
 def test_every_key_of_a_job_expires_together(store):
