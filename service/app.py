@@ -12,6 +12,7 @@
     GET    /v1/jobs/{id}/events           Server-Sent Events: the job at every change (service.events)
     DELETE /v1/jobs/{id}              cancel a queued or running job -> 204
     GET    /healthz                   whether Redis answers and how many workers listen (503: Redis down)
+    GET    /metrics                   Prometheus text format: jobs, workers, stage durations, HTTP (service.metrics)
 
 Every error is JSON, ``{"detail": ...}``. The API key and the upload limit are checked before a
 body is read, in ``service.middleware``. Jobs and their outputs live in Redis (``worker.store``),
@@ -41,6 +42,7 @@ from core.ply import read_points
 from service.events import events_router
 from service.formats import MESH_FILES
 from service.formats import router as formats_router
+from service.metrics import install as install_metrics
 from service.middleware import RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
@@ -265,7 +267,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         raise RuntimeError("REDIS_URL is not set: point it at the Redis the workers use (or run `edgerecon serve`)")
     redis, async_redis = connect(settings.redis_url, fail_fast=True), connect_async(settings.redis_url)
     app.state.store = JobStore(redis, settings, async_redis)
-    app.state.registry = WorkerRegistry(redis, settings)
+    app.state.registry = WorkerRegistry(redis, settings, async_redis)
     sweeper = asyncio.create_task(_sweep_orphans(app.state.store, settings.sweep_interval))
     try:
         yield
@@ -303,6 +305,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(Exception, _internal_error)
     api_key = settings.api_key.get_secret_value() if settings.api_key else None
     app.add_middleware(RequestGuard, max_body_bytes=settings.max_upload_bytes, api_key=api_key)
+    install_metrics(app)  # GET /metrics, and the outermost middleware, which counts every request
     return app
 
 

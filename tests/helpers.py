@@ -98,6 +98,19 @@ def ply_ascii(points: np.ndarray) -> bytes:
     return ply_header("ascii", len(points)) + rows.encode()
 
 
+def scrape(url: str, **kwargs) -> dict[tuple[str, frozenset], float]:
+    """GET ``url``/metrics, parsed: (sample name, its labels) to value; names as exposed (``_total``...)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    response = httpx.get(url + "/metrics", timeout=10, **kwargs)
+    assert response.status_code == 200, response.text
+    return {
+        (sample.name, frozenset(sample.labels.items())): sample.value
+        for family in text_string_to_metric_families(response.text)
+        for sample in family.samples
+    }
+
+
 # --- processes -----------------------------------------------------------------------------------
 
 

@@ -87,6 +87,9 @@ class JobRunner:
             summary = result.summary()
             if store.succeed(job_id, result.outputs(), summary):
                 log.info("job %s succeeded: %s", job_id, summary)
+                store.observe_durations(
+                    {"fitting": result.timings["fit_seconds"], "extracting": result.timings["extract_seconds"]}
+                )
         except Cancelled:
             if self.shutdown.is_set():
                 store.fail(job_id, SHUTDOWN)

@@ -75,6 +75,11 @@ class Settings(BaseSettings):
         10.0, gt=0, le=60, description="seconds of silence after which an event stream sends a keep-alive comment"
     )
 
+    # Metrics (GET /metrics).
+    metrics_need_api_key: bool = Field(
+        False, description="whether GET /metrics needs the API key (when one is set); off: scrapers need no secret"
+    )
+
 
 @lru_cache
 def get_settings() -> Settings:

@@ -19,6 +19,11 @@ failed when its status is read or by the API's periodic sweep (``fail_orphans``)
 Every write of a record is announced on the Redis channel ``{prefix}:job:{id}:changes`` (the new
 status as the message), so that the API's event streams read the record when it changes instead of
 polling it.
+
+What /metrics reports is kept here too, so that every API process reports the same numbers:
+``{prefix}:counts`` counts the jobs that ever entered each status (``queued`` is the number
+submitted), moved by the same atomic writes; ``{prefix}:durations`` holds histograms of how long
+jobs spent in each stage (``queued``, ``fitting``, ``extracting``), observed by the workers.
 """
 
 from __future__ import annotations
@@ -26,14 +31,18 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
+import math
 import zlib
 from collections.abc import Mapping
+from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any, cast
 
 import numpy as np
 from redis import Redis
 from redis.asyncio import Redis as AsyncRedis
+from redis.exceptions import RedisError
 from rq import Queue
 from rq.exceptions import NoSuchJobError
 from rq.job import Job
@@ -45,7 +54,10 @@ from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobRecord, Job
 from worker.errors import InputExpired, InvalidJobId
 from worker.settings import Settings
 
-# KEYS[1] the record, KEYS[2] the set of running job ids, KEYS[3..] more keys of the job.
+log = logging.getLogger("edgerecon.store")
+
+# KEYS[1] the record, KEYS[2] the set of running job ids, KEYS[3] the counts of statuses entered,
+# KEYS[4..] more keys of the job.
 # ARGV[1] allowed statuses (space-separated), ARGV[2] job id, ARGV[3] ttl (0: leave expiries alone),
 # ARGV[4..] field, value, ... to set. Returns the status found (nil: no record); the update was
 # made if and only if that status is one of ARGV[1], and then announced on KEYS[1] .. ':changes'.
@@ -55,19 +67,48 @@ if not status or not string.find(' ' .. ARGV[1] .. ' ', ' ' .. status .. ' ', 1,
   return status
 end
 if #ARGV > 3 then redis.call('HSET', KEYS[1], unpack(ARGV, 4)) end
-if redis.call('HGET', KEYS[1], 'status') == 'running' then
+local new = redis.call('HGET', KEYS[1], 'status')
+if new == 'running' then
   redis.call('SADD', KEYS[2], ARGV[2])
 else
   redis.call('SREM', KEYS[2], ARGV[2])
 end
+if new ~= status then redis.call('HINCRBY', KEYS[3], new, 1) end
 if tonumber(ARGV[3]) > 0 then
   for i = 1, #KEYS do
-    if i ~= 2 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end
+    if i ~= 2 and i ~= 3 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end
   end
 end
-redis.call('PUBLISH', KEYS[1] .. ':changes', redis.call('HGET', KEYS[1], 'status'))
+redis.call('PUBLISH', KEYS[1] .. ':changes', new)
 return status
 """
+
+
+# Upper bounds (seconds) of the buckets of the stage-duration histograms; changing them restarts the histograms.
+DURATION_BUCKETS = (0.5, 1, 2.5, 5, 10, 25, 50, 100, 250, 500, 1000, 2500, 5000)
+
+
+@dataclass
+class StageDurations:
+    """One stage's histogram: how many durations fell at or below each bucket bound (cumulative,
+    ``inf`` last), and their sum."""
+
+    buckets: dict[float, int]
+    sum: float
+
+    @property
+    def count(self) -> int:
+        return self.buckets[math.inf]
+
+
+@dataclass
+class StoreStats:
+    """What /metrics reads from the store at a scrape."""
+
+    entered: dict[str, int]  # how many jobs ever entered each status (``queued``: submitted)
+    queued: int  # jobs waiting in the queue now
+    running: int  # jobs running now
+    durations: dict[str, StageDurations]  # by stage: queued, fitting, extracting
 
 
 def _now() -> str:
@@ -104,9 +145,9 @@ class JobStore:
         return self._key(job_id, "changes")
 
     def _job_keys(self, job_id: str) -> list[str]:
-        """The record, the running set, then every other key of the job (they expire together)."""
+        """The record, the running set, the counts, then every other key of the job (they expire together)."""
         blobs = [self._key(job_id, name) for name in ("points", *OUTPUT_NAMES)]
-        return [self._key(job_id), f"{self.prefix}:running", *blobs]
+        return [self._key(job_id), f"{self.prefix}:running", f"{self.prefix}:counts", *blobs]
 
     def _update(
         self, job_id: str, allowed: tuple[JobStatus, ...], fields: Mapping[str, str], *, touch: bool
@@ -137,6 +178,7 @@ class JobStore:
             pipe.set(self._key(job_id, "points"), _pack(buffer.getvalue(), level=1), ex=self.ttl)
             pipe.hset(self._key(job_id), mapping=record)
             pipe.expire(self._key(job_id), self.ttl)
+            pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
             self.queue.enqueue_call(
                 JOB_FUNCTION,
                 args=(job_id,),
@@ -261,7 +303,10 @@ class JobStore:
         }
         if self._update(job_id, (JobStatus.QUEUED,), fields, touch=True) != JobStatus.QUEUED:
             return None
-        params = self.redis.hget(self._key(job_id), "params")
+        params, created_at = self.redis.hmget(self._key(job_id), ["params", "created_at"])
+        if created_at:
+            waited = datetime.fromisoformat(fields["started_at"]) - datetime.fromisoformat(text(created_at))
+            self.observe_durations({"queued": waited.total_seconds()})
         return FitParams.model_validate_json(params) if params else None
 
     def keep_alive(self, job_id: str, worker: str) -> None:
@@ -281,6 +326,36 @@ class JobStore:
         return (
             self._update(job_id, (JobStatus.RUNNING,), {"progress": progress.model_dump_json()}, touch=True)
             == JobStatus.RUNNING
+        )
+
+    def observe_durations(self, seconds: Mapping[str, float]) -> None:
+        """Add each stage's duration to its histogram (``seconds``: stage to seconds). Best effort:
+        a lost observation must not fail a job, so a Redis error is logged, not raised."""
+        key = f"{self.prefix}:durations"
+        try:
+            with self.redis.pipeline() as pipe:
+                for stage, value in seconds.items():
+                    bound = next((bound for bound in DURATION_BUCKETS if value <= bound), math.inf)
+                    pipe.hincrby(key, f"{stage}:le:{bound}", 1)
+                    pipe.hincrbyfloat(key, f"{stage}:sum", value)
+                pipe.execute()
+        except RedisError as error:
+            log.warning("durations %s not recorded: %s", dict(seconds), error)
+
+    async def stats_async(self) -> StoreStats:
+        """The counts, the queue's and running set's sizes and the stage histograms, in one round trip."""
+        assert self.async_redis is not None, "stats_async needs the store's asyncio client"
+        async with self.async_redis.pipeline(transaction=False) as pipe:
+            pipe.hgetall(f"{self.prefix}:counts")
+            pipe.llen(self.queue.key)
+            pipe.scard(f"{self.prefix}:running")
+            pipe.hgetall(f"{self.prefix}:durations")
+            counts, queued, running, durations = await pipe.execute()
+        return StoreStats(
+            entered={text(status): int(count) for status, count in counts.items()},
+            queued=queued,
+            running=running,
+            durations=_histograms({text(field): float(value) for field, value in durations.items()}),
         )
 
     def is_running(self, job_id: str) -> bool:
@@ -309,3 +384,17 @@ class JobStore:
     @staticmethod
     def _failure(reason: str) -> dict[str, str]:
         return {"status": JobStatus.FAILED.value, "ended_at": _now(), "error": reason}
+
+
+def _histograms(fields: dict[str, float]) -> dict[str, StageDurations]:
+    """The ``{prefix}:durations`` hash (``stage:le:bound`` counts per bucket, ``stage:sum``) as
+    cumulative histograms by stage."""
+    stages = sorted({name.split(":", 1)[0] for name in fields})
+    histograms = {}
+    for stage in stages:
+        cumulative, buckets = 0, {}
+        for bound in (*DURATION_BUCKETS, math.inf):
+            cumulative += int(fields.get(f"{stage}:le:{bound}", 0))
+            buckets[float(bound)] = cumulative
+        histograms[stage] = StageDurations(buckets=buckets, sum=fields.get(f"{stage}:sum", 0.0))
+    return histograms

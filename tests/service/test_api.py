@@ -343,7 +343,8 @@ def test_api_key_guards_every_v1_route(redis_server, tmp_path):
             assert client.post("/v1/jobs", headers=good, files=cloud).status_code == 202
             assert client.get("/v1/jobs/" + "A" * 22, headers=good).status_code == 404
             assert client.get("/v1/jobs/" + "A" * 22 + "/events", headers=good).status_code == 404
-            assert client.get("/healthz").status_code == 200  # health and docs stay open
+            assert client.get("/healthz").status_code == 200  # health, metrics and docs stay open
+            assert client.get("/metrics").status_code == 200
             assert client.get("/docs").status_code == 200
         # Without the key, even a huge declared upload is refused as unauthorized, unread.
         head = f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: {10**10}\r\n\r\n".encode()

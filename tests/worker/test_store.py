@@ -161,6 +161,29 @@ def test_every_write_of_a_record_is_announced_on_its_channel_with_the_new_status
     assert heard == ["running", "running", "canceled"]
 
 
+def test_the_counts_of_statuses_entered_and_the_stage_histograms_follow_the_transitions(store, redis_server):
+    succeeded, canceled, refused = running_job(store), new_job(store), running_job(store)
+    store.succeed(succeeded, OUTPUTS, SUMMARY)
+    store.cancel(canceled)
+    store.fail(refused, "no surface")
+    store.cancel(canceled), store.succeed(refused, OUTPUTS, SUMMARY)  # refused moves count nothing
+    store.observe_durations({"fitting": 3.0, "extracting": 0.2})
+    store.observe_durations({"fitting": 7000.0})
+
+    async def read():
+        async with AsyncRedis.from_url(redis_server.url) as client:
+            return await JobStore(store.redis, settings_of(store), client).stats_async()
+
+    stats = asyncio.run(read())
+    assert stats.entered == {"queued": 3, "running": 2, "succeeded": 1, "canceled": 1, "failed": 1}
+    assert stats.running == 0  # (stats.queued is rq's queue, which no worker pops here: see tests/service)
+    fitting = stats.durations["fitting"]
+    assert fitting.count == 2 and fitting.sum == 7003.0
+    assert (fitting.buckets[2.5], fitting.buckets[5.0], fitting.buckets[5000.0]) == (0, 1, 1)  # cumulative
+    assert stats.durations["extracting"].buckets[0.5] == 1
+    assert stats.durations["queued"].count == 2  # observed by start, for the two jobs that started
+
+
 def test_every_key_of_a_job_expires_together(store):
     job_id = running_job(store)
     store.succeed(job_id, OUTPUTS, SUMMARY)
