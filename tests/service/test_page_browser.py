@@ -2,16 +2,18 @@
 nothing here downloads a browser) against a live ``edgerecon serve``, as a person would use it.
 
 - submit examples/cube.ply with a few changed parameters (an invalid value is refused first, before
-  anything is sent), see the progress bar move and the loss curve drawn, see the 3D view of the
-  result (its pixels: the mesh, and the edge points that a toggle hides and shows), the input points
-  read from the picked file, and download outputs;
+  anything is sent), watch it through the event stream, see the progress bar move and the loss curve
+  drawn, see the 3D view of the result (its pixels: the mesh, and the edge points that a toggle hides
+  and shows), the input points and normals from the job's preview.json, and download outputs, the
+  mesh in glTF binary among them;
 - cancel a long job and see ``canceled``;
 - see the API's own 400 ``detail`` for a file that is no cloud, and the plain 401 message for a
   wrong API key (the service runs with ``EDGERECON_API_KEY`` set; the page itself needs no key).
 
-The service has no event stream yet, so the page watches by polling. A last test runs the page
-against a small stand-in for the API as issue 12 will extend it (an SSE events route, preview.json,
-edge curves, more outputs), so the page's other paths are proven in the browser too.
+A last test runs the page against a small stand-in for the API with what this service does not
+have yet (edge curves in edges.json), a stream that breaks off (the page falls back to polling)
+and a job without preview.json (the input points come from the file picked in the page), so the
+page's other paths are proven in the browser too.
 
 Screenshots go to tests/artifacts/. ``EDGERECON_UPDATE_SCREENSHOT=1`` also writes the finished cube
 to docs/page.png (the README's picture).
@@ -35,6 +37,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import trimesh
 import uvicorn
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
@@ -163,6 +166,10 @@ def set_checkbox(page, selector: str, checked: bool) -> None:
     page.wait_for_function("n => Number(document.getElementById('viewer').dataset.frames) > n", arg=before)
 
 
+def job_result(url: str, job_id: str) -> dict:
+    return httpx.get(f"{url}/v1/jobs/{job_id}", headers={"Authorization": f"Bearer {API_KEY}"}).json()["result"]
+
+
 def open_page(page, url: str, key: str | None) -> None:
     page.goto(url + "/")
     page.wait_for_selector("#param-iterations", state="attached")  # the form, from /openapi.json
@@ -228,7 +235,7 @@ def test_submit_watch_view_and_download(service, page):
     page.wait_for_function(f"{bar}.value > 0 && {bar}.value < {bar}.max", timeout=60_000)
     first = page.eval_on_selector("#job-progress", "bar => bar.value")
     page.wait_for_function(f"{bar}.value > {first}", timeout=30_000)
-    assert "polling" in page.inner_text("#job-updates") or "event stream" in page.inner_text("#job-updates")
+    assert page.inner_text("#job-updates") == "Updates: live: event stream."  # not polling
     assert page.inner_text("#job-remaining") not in ("", "–")
     chart = pixels(page.locator("#loss-chart"))
     assert count_near(chart, VANISH_RGB, 30) > 20 and count_near(chart, EIKONAL_RGB, 30) > 20, "no loss curve drawn"
@@ -255,12 +262,12 @@ def test_submit_watch_view_and_download(service, page):
     set_checkbox(page, "#show-edges", True)
     assert count_near(pixels(viewer), EDGE_RGB) > 50
 
-    # Input points and normals: the service has no preview.json, so they come from the picked file.
+    # Input points and normals: from the job's preview.json (all 6,000: fewer than its bound).
     assert page.is_enabled("#show-points") and page.is_enabled("#show-normals")
     set_checkbox(page, "#show-mesh", False)
     points_off = pixels(viewer)
     set_checkbox(page, "#show-points", True)
-    assert "6,000 of 6,000 points of cube.ply" in page.inner_text("#viewer-note")
+    assert "6,000 of 6,000 points (preview.json)" in page.inner_text("#viewer-note")
     assert np.abs(pixels(viewer) - points_off).sum() > 0, "the input points changed nothing"
     set_checkbox(page, "#show-normals", True)
     set_checkbox(page, "#show-mesh", True)
@@ -270,7 +277,7 @@ def test_submit_watch_view_and_download(service, page):
     assert "faces" in page.inner_text("#result-table") and "fit seconds" in page.inner_text("#result-table")
     buttons = page.locator("#downloads button")
     assert {buttons.nth(i).get_attribute("data-output") for i in range(buttons.count())} == {
-        "mesh.obj", "normals.json", "edges.json"
+        "mesh.obj", "normals.json", "edges.json", "preview.json", "mesh.ply", "mesh.stl", "mesh.glb"
     }  # fmt: skip
     with page.expect_download() as download:
         page.click("#downloads button[data-output='mesh.obj']")
@@ -280,6 +287,11 @@ def test_submit_watch_view_and_download(service, page):
     with page.expect_download() as download:
         page.click("#downloads button[data-output='edges.json']")
     assert "points" in json.loads(Path(download.value.path()).read_text())
+    with page.expect_download() as download:
+        page.click("#downloads button[data-output='mesh.glb']")
+    assert download.value.suggested_filename == "mesh.glb"
+    glb = trimesh.load(download.value.path(), file_type="glb", force="mesh")
+    assert len(glb.faces) == job_result(service, job_id)["faces"]
 
     # The job is listed in this browser, with its status.
     assert "succeeded" in page.inner_text(f"#job-list li[data-job='{job_id}']")
@@ -330,7 +342,8 @@ def _stand_in_api():
     """A stand-in for the API with the routes issue 12 adds: GET /v1/jobs/{id}/events (Server-Sent
     Events), preview.json, edge curves in edges.json, more mesh formats. It serves the real page and
     the real form schema; its "fit" is a few scripted events. ``seed`` 1 makes the stream stop
-    before the final state, which the page must notice and poll for."""
+    before the final state, which the page must notice and poll for, and leaves preview.json out
+    of the job's links."""
     schema = create_app(Settings(redis_url="redis://127.0.0.1:1/0")).openapi()
     app = FastAPI(openapi_url=None)
     app.state.forms = []  # the fields of every submitted form, but the file
@@ -373,7 +386,8 @@ def _stand_in_api():
 
     def view(job_id: str, status: str, iteration: int = 0) -> dict:
         base = f"/v1/jobs/{job_id}"
-        links = {"self": base, **({name: f"{base}/{name}" for name in outputs} if status == "succeeded" else {})}
+        listed = [name for name in outputs if not (name == "preview.json" and jobs[job_id]["breaks"])]
+        links = {"self": base, **({name: f"{base}/{name}" for name in listed} if status == "succeeded" else {})}
         losses = {"total": 1 / (1 + iteration), "vanish": 0.5 / (1 + iteration), "eikonal": 0.1, "laplacian": 2.0}
         return {
             "id": job_id, "status": status, "points": 6000, "params": {"iterations": 50},
@@ -483,6 +497,11 @@ def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(sta
     assert app.state.forms[-1] == {"iterations": "50", "seed": "1"}
     wait_status(page, "succeeded", timeout=20)
     assert "the event stream ended early" in page.inner_text("#job-updates")
+    # No preview.json: the input points are read from the file picked here, the normals from normals.json.
+    page.wait_for_selector("#viewer-wrap[data-state=ready]")
+    assert page.is_checked("#show-points")  # as chosen for the first job
+    page.wait_for_function("document.getElementById('viewer-note').textContent.includes('of cube.ply')")
+    assert "6,000 of 6,000 points of cube.ply" in page.inner_text("#viewer-note")
 
 
 def test_the_page_reads_ply_files_of_every_kind_and_samples_big_ones(stand_in, page, tmp_path):
