@@ -72,7 +72,10 @@ class Settings(BaseSettings):
         description="event streams one API process serves at once (each holds a Redis connection); 503 beyond",
     )
     event_keepalive: float = Field(
-        10.0, gt=0, le=60, description="seconds of silence after which an event stream sends a keep-alive comment"
+        10.0,
+        gt=0,
+        le=15,
+        description="seconds of silence after which an event stream sends a keep-alive comment (FastAPI pings at 15)",
     )
 
     # Metrics (GET /metrics).
