@@ -1,4 +1,5 @@
-"""From a fitted network to outputs: the mesh (coarse-to-fine marching cubes), normals, Laplacian.
+"""From a fitted network to outputs: the mesh (a coarse-to-fine grid, then dual contouring or marching
+cubes), normals, Laplacian.
 
 Everything here works in the unit frame and in chunks, so memory stays bounded however many
 points or grid nodes there are.
@@ -7,6 +8,8 @@ points or grid nodes there are.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import torch
@@ -14,7 +17,9 @@ import trimesh
 from scipy.ndimage import zoom
 from skimage.measure import marching_cubes
 
+from core.dual import dual_contour
 from core.errors import CancelCheck, EmptySurfaceError, check_cancel
+from core.grid import Grid
 from core.network import ImplicitNetwork
 
 # The grid covers the cloud's bounding box plus this margin on every side (unit frame).
@@ -61,15 +66,54 @@ def extract_mesh(
     low: np.ndarray,
     high: np.ndarray,
     should_cancel: CancelCheck | None = None,
+    method: str = "mc",
 ) -> tuple[trimesh.Trimesh, dict]:
-    """Marching cubes of f = 0 over the box [low, high] plus a margin, in the unit frame.
+    """The mesh of f = 0 over the box [low, high] plus a margin, in the unit frame.
+
+    ``method`` "mc" is marching cubes of the sampled grid (it cuts across every sharp edge);
+    "sharp" is dual contouring of the same grid (``core.dual``), whose vertices sit on edges and
+    corners. Returns the mesh and statistics (how many grid nodes were evaluated, of how many).
+    """
+    values_at = partial(evaluate, model, should_cancel=should_cancel)
+    grid = sample_grid(values_at, resolution, low, high, should_cancel)
+    if method == "sharp":
+        mesh = dual_contour(grid, values_at, partial(derivatives, model, should_cancel=should_cancel))
+    else:
+        vertices, faces, _, _ = marching_cubes(grid.values, 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent")
+        mesh = trimesh.Trimesh(vertices + grid.origin, faces, process=False)
+    return mesh, {"grid_nodes": int(grid.values.size), "evaluated_nodes": grid.evaluated}
+
+
+@torch.no_grad()
+def derivatives(
+    model: ImplicitNetwork, points: np.ndarray, chunk: int = 16_384, should_cancel: CancelCheck | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """f (n,) and ∇f (n, 3) at ``points`` (n, 3), float64, in chunks: the network's exact values."""
+    values = np.empty(len(points), dtype=np.float64)
+    grads = np.empty((len(points), 3), dtype=np.float64)
+    for start in range(0, len(points), chunk):
+        check_cancel(should_cancel)
+        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
+        f, grad, _ = model.derivatives(batch, laplacian_rows=0)
+        values[start : start + chunk], grads[start : start + chunk] = f.numpy(), grad.numpy()
+    return values, grads
+
+
+def sample_grid(
+    values_at: Callable[[np.ndarray], np.ndarray],
+    resolution: int,
+    low: np.ndarray,
+    high: np.ndarray,
+    should_cancel: CancelCheck | None = None,
+) -> Grid:
+    """f on a grid over the box [low, high] plus a margin, evaluated only where the surface may be.
 
     The cells are (1 + 2 * GRID_MARGIN) / ``resolution`` wide. f is evaluated on a coarse grid
     first; each finer level evaluates only the cells that may hold the surface: near the zero
     level on intermediate levels, and at the finest level the cells whose coarse parent changes
     sign, grown along the surface until every cell the surface crosses has all its corners
-    evaluated. The grid's boundary is kept outside (f > 0) so the mesh is always closed.
-    Returns the mesh and statistics (how many grid nodes were evaluated, of how many).
+    evaluated (the other nodes hold interpolated values of the right sign). The grid's boundary is
+    kept outside (f > 0) so that the surface is always closed.
     """
     cell = (1.0 + 2 * GRID_MARGIN) / resolution
     levels = max(0, int(math.floor(math.log2(resolution / _COARSEST_CELLS))))
@@ -79,10 +123,10 @@ def extract_mesh(
     origin = (np.asarray(low) + np.asarray(high)) / 2 - cells * cell / 2
 
     coarse_cells = cells // step
-    values = evaluate(model, _grid_nodes(origin, cell * step, coarse_cells).reshape(-1, 3), should_cancel=should_cancel)
-    values = values.reshape(coarse_cells + 1)
+    values = values_at(_grid_nodes(origin, cell * step, coarse_cells).reshape(-1, 3)).reshape(coarse_cells + 1)
     known = np.ones(values.shape, dtype=bool)
     for level in range(levels - 1, -1, -1):
+        check_cancel(should_cancel)
         spacing = cell * 2**level
         finest = level == 0
         parents = _sign_change_cells(values) if finest else _near_cells(values, spacing * 2)
@@ -91,7 +135,7 @@ def extract_mesh(
         known[::2, ::2, ::2] = was_known
         wanted = _cell_nodes(_split_cells(parents)) & ~known
         while wanted.any():
-            values[wanted] = evaluate(model, origin + np.argwhere(wanted) * spacing, should_cancel=should_cancel)
+            values[wanted] = values_at(origin + np.argwhere(wanted) * spacing)
             known |= wanted
             if not finest:
                 break
@@ -104,9 +148,7 @@ def extract_mesh(
         for end in (0, -1):
             boundary[axis] = end
             values[tuple(boundary)] = np.maximum(values[tuple(boundary)], cell)
-    vertices, faces, _, _ = marching_cubes(values, 0.0, spacing=(cell,) * 3, gradient_direction="descent")
-    mesh = trimesh.Trimesh(vertices + origin, faces, process=False)
-    return mesh, {"grid_nodes": int(values.size), "evaluated_nodes": int(np.count_nonzero(known))}
+    return Grid(values=values, origin=origin, cell=cell, evaluated=int(np.count_nonzero(known)))
 
 
 def _grid_nodes(origin: np.ndarray, spacing: float, cells: np.ndarray) -> np.ndarray:

@@ -1,0 +1,117 @@
+"""Sharp features of a fitted f: the tangent planes of the faces on both sides of each edge.
+
+A fitted network rounds every sharp edge over a band a few hundredths wide, so its own tangent
+planes there turn gradually and dual contouring alone would keep the rounding. Beside the band the
+faces are flat again. For each crossing of f = 0 where the normal turns (a candidate), this module
+walks over the surface across the direction of turning, by ``SIDE_STEP`` to each side, and reads
+the normal there; at one and a half steps it reads it again. Both sides flat (the two readings of
+each side within ``FLAT_TURNING``) and turned from one another by at least ``EDGE_TURNING``: the
+candidate lies in the band of an edge, and the planes of the two faces meet on that edge. A curved
+face (a hole's wall of radius 0.05, a sphere) keeps turning over the walk, so it is never sharpened.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# (n, 3) points -> f (n,) and ∇f (n, 3), float64
+Derivatives = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+SIDE_STEP = 0.03  # unit frame: past the rounding band of a fitted edge, within the faces of thin parts
+FLAT_TURNING = 6.0  # degrees the normal may turn from one to one and a half steps on a flat face
+EDGE_TURNING = 25.0  # degrees between the two faces' normals for an edge (faces meeting at up to 155°)
+_CANDIDATE_TURNING = 3.0  # degrees to a nearby crossing's normal that make a crossing worth the walk
+_NEIGHBOURS = 8
+_PROJECTION_STEPS = 2
+WALK_SPACING = 0.015  # unit frame: one walk per cube of this size
+
+
+@dataclass
+class SidePlanes:
+    """The faces beside each crossing: for an edge crossing (``edge``), a point and unit normal on
+    each side's face; elsewhere both sides are the crossing's own tangent plane. Arrays (c, 3), (c,)."""
+
+    points_a: np.ndarray
+    normals_a: np.ndarray
+    points_b: np.ndarray
+    normals_b: np.ndarray
+    edge: np.ndarray
+
+
+def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Derivatives) -> SidePlanes:
+    """The planes of the faces beside each crossing (c, 3) with unit normals (c, 3) on f = 0.
+
+    The walk is made from one candidate per ``WALK_SPACING`` cube (the faces beside an edge are the
+    same all along it); every other candidate takes the planes of the nearest walked one.
+    """
+    count = len(crossings)
+    planes = SidePlanes(crossings.copy(), normals.copy(), crossings.copy(), normals.copy(), np.zeros(count, bool))
+    candidates, across = _turning(crossings, normals)
+    if len(candidates) == 0:
+        return planes
+    _, walker = np.unique(np.floor(crossings[candidates] / WALK_SPACING).astype(np.int64), axis=0, return_index=True)
+    start, direction = crossings[candidates[walker]], across[walker]
+    sides = []
+    for sign in (1.0, -1.0):
+        near = _on_surface(start + sign * SIDE_STEP * direction, derivatives_at)
+        far = _on_surface(start + sign * 1.5 * SIDE_STEP * direction, derivatives_at)
+        sides.append((near, _unit(derivatives_at(near)[1]), _unit(derivatives_at(far)[1])))
+    (point_a, normal_a, far_a), (point_b, normal_b, far_b) = sides
+    flat = np.cos(np.radians(FLAT_TURNING))
+    edge = (
+        (np.einsum("ij,ij->i", normal_a, far_a) > flat)
+        & (np.einsum("ij,ij->i", normal_b, far_b) > flat)
+        & (np.einsum("ij,ij->i", normal_a, normal_b) < np.cos(np.radians(EDGE_TURNING)))
+    )
+    if not edge.any():
+        return planes
+    distance, nearest = cKDTree(start[edge]).query(crossings[candidates])
+    close = distance <= WALK_SPACING * math.sqrt(3)
+    chosen, nearest = candidates[close], nearest[close]
+    planes.points_a[chosen], planes.normals_a[chosen] = point_a[edge][nearest], normal_a[edge][nearest]
+    planes.points_b[chosen], planes.normals_b[chosen] = point_b[edge][nearest], normal_b[edge][nearest]
+    planes.edge[chosen] = True
+    return planes
+
+
+def _turning(crossings: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The crossings whose normal turns towards a neighbour's by more than ``_CANDIDATE_TURNING``,
+    and for each the unit direction (in its tangent plane) in which the normal turns fastest."""
+    k = min(_NEIGHBOURS + 1, len(crossings))
+    _, neighbours = cKDTree(crossings).query(crossings, k)
+    neighbours = neighbours[:, 1:]
+    cosines = np.einsum("ij,ikj->ik", normals, normals[neighbours])
+    candidates = np.flatnonzero(cosines.min(axis=1) < np.cos(np.radians(_CANDIDATE_TURNING)))
+    if len(candidates) == 0:
+        return candidates, np.zeros((0, 3))
+    normal = normals[candidates]
+    first = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+    second = np.cross(normal, first)
+    basis = np.stack([first, second], axis=2)  # (m, 3, 2)
+    offsets = np.einsum("mkj,mja->mka", crossings[neighbours[candidates]] - crossings[candidates, None], basis)
+    turns = np.einsum("mkj,mja->mka", normals[neighbours[candidates]] - normal[:, None], basis)
+    # The shape operator S (2 x 2) from turns ≈ offsets S, by least squares; the normal turns
+    # fastest along the top right-singular vector of S^T, i.e. the top eigenvector of S S^T.
+    gram = np.einsum("mka,mkb->mab", offsets, offsets) + 1e-12 * np.eye(2)
+    shape = np.linalg.solve(gram, np.einsum("mka,mkb->mab", offsets, turns))
+    _, vectors = np.linalg.eigh(np.einsum("mab,mcb->mac", shape, shape))
+    across = np.einsum("mja,ma->mj", basis, vectors[:, :, -1])
+    return candidates, _unit(across)
+
+
+def _on_surface(points: np.ndarray, derivatives_at: Derivatives) -> np.ndarray:
+    """``points`` moved onto f = 0 by Newton steps along ∇f."""
+    points = points.copy()
+    for _ in range(_PROJECTION_STEPS):
+        value, gradient = derivatives_at(points)
+        points -= (value / np.maximum(np.einsum("ij,ij->i", gradient, gradient), 1e-12))[:, None] * gradient
+    return points
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    return vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
