@@ -24,10 +24,12 @@ Derivatives = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 SIDE_STEP = 0.03  # unit frame: past the rounding band of a fitted edge, within the faces of thin parts
 FLAT_TURNING = 6.0  # degrees the normal may turn from one to one and a half steps on a flat face
+MAX_OFFSET = 0.02  # unit frame: the farthest a crossing lies from a face's plane beside it (rounding)
 EDGE_TURNING = 25.0  # degrees between the two faces' normals for an edge (faces meeting at up to 155°)
 _CANDIDATE_TURNING = 3.0  # degrees to a nearby crossing's normal that make a crossing worth the walk
 _NEIGHBOURS = 8
 _PROJECTION_STEPS = 2
+_WALK_STEPS = 6  # to one and a half SIDE_STEP; the near reading after four
 WALK_SPACING = 0.015  # unit frame: one walk per cube of this size
 
 
@@ -56,11 +58,7 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
         return planes
     _, walker = np.unique(np.floor(crossings[candidates] / WALK_SPACING).astype(np.int64), axis=0, return_index=True)
     start, direction = crossings[candidates[walker]], across[walker]
-    sides = []
-    for sign in (1.0, -1.0):
-        near = _on_surface(start + sign * SIDE_STEP * direction, derivatives_at)
-        far = _on_surface(start + sign * 1.5 * SIDE_STEP * direction, derivatives_at)
-        sides.append((near, _unit(derivatives_at(near)[1]), _unit(derivatives_at(far)[1])))
+    sides = [_walk(start, sign * direction, derivatives_at) for sign in (1.0, -1.0)]
     (point_a, normal_a, far_a), (point_b, normal_b, far_b) = sides
     flat = np.cos(np.radians(FLAT_TURNING))
     edge = (
@@ -71,10 +69,16 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     if not edge.any():
         return planes
     distance, nearest = cKDTree(start[edge]).query(crossings[candidates])
-    close = distance <= WALK_SPACING * math.sqrt(3)
+    point_a, normal_a, point_b, normal_b = point_a[edge], normal_a[edge], point_b[edge], normal_b[edge]
+    # A candidate takes the nearest walk's planes if both pass near it: near a corner the nearest
+    # walk may have crossed onto another edge's faces.
+    here = crossings[candidates]
+    offset_a = np.abs(np.einsum("ij,ij->i", normal_a[nearest], here - point_a[nearest]))
+    offset_b = np.abs(np.einsum("ij,ij->i", normal_b[nearest], here - point_b[nearest]))
+    close = (distance <= WALK_SPACING * math.sqrt(3)) & (np.maximum(offset_a, offset_b) <= MAX_OFFSET)
     chosen, nearest = candidates[close], nearest[close]
-    planes.points_a[chosen], planes.normals_a[chosen] = point_a[edge][nearest], normal_a[edge][nearest]
-    planes.points_b[chosen], planes.normals_b[chosen] = point_b[edge][nearest], normal_b[edge][nearest]
+    planes.points_a[chosen], planes.normals_a[chosen] = point_a[nearest], normal_a[nearest]
+    planes.points_b[chosen], planes.normals_b[chosen] = point_b[nearest], normal_b[nearest]
     planes.edge[chosen] = True
     return planes
 
@@ -104,13 +108,28 @@ def _turning(crossings: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np
     return candidates, _unit(across)
 
 
-def _on_surface(points: np.ndarray, derivatives_at: Derivatives) -> np.ndarray:
-    """``points`` moved onto f = 0 by Newton steps along ∇f."""
-    points = points.copy()
-    for _ in range(_PROJECTION_STEPS):
-        value, gradient = derivatives_at(points)
-        points -= (value / np.maximum(np.einsum("ij,ij->i", gradient, gradient), 1e-12))[:, None] * gradient
-    return points
+def _walk(
+    start: np.ndarray, direction: np.ndarray, derivatives_at: Derivatives
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Walk over f = 0 from ``start`` (m, 3) along ``direction`` (m, 3), in ``_WALK_STEPS`` small
+    steps, each followed by Newton steps back onto the surface and with the direction turned
+    into the new tangent plane: a straight step would leave a rounded edge into empty space and
+    fall back onto the rounding, never reaching the face beyond. Returns the point and unit
+    normal after ``SIDE_STEP`` and the unit normal after one and a half of it."""
+    step = 1.5 * SIDE_STEP / _WALK_STEPS
+    point, direction = start.copy(), direction.copy()
+    near = normal = start
+    for index in range(1, _WALK_STEPS + 1):
+        point = point + step * direction
+        for _ in range(_PROJECTION_STEPS):
+            value, gradient = derivatives_at(point)
+            point = point - (value / np.maximum(np.einsum("ij,ij->i", gradient, gradient), 1e-12))[:, None] * gradient
+        normal = _unit(gradient)
+        turned = direction - np.einsum("ij,ij->i", direction, normal)[:, None] * normal
+        direction = np.where(np.linalg.norm(turned, axis=1, keepdims=True) > 1e-6, _unit(turned), direction)
+        if index == 2 * _WALK_STEPS // 3:
+            near, near_normal = point, normal
+    return near, near_normal, normal
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:

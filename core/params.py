@@ -28,7 +28,12 @@ class FitParams(BaseModel):
     lambda2: float = Field(
         1e-4, ge=0, le=1000, description="weight of the Laplacian term (0: plain IGR; the paper: 0.001)"
     )
-    tau: float = Field(30.0, gt=0, le=1e6, description="edge threshold on |Δf|, normalised frame (the paper: 20)")
+    tau: float = Field(
+        30.0,
+        gt=0,
+        le=1e6,
+        description="|Δf| threshold: dynamic edge sampling in the fit; edge points of the mc extraction (paper: 20)",
+    )
     edge_sampling: bool = Field(
         True, description="dynamic edge sampling: leave points with |Δf| >= tau out of the Laplacian term"
     )
@@ -42,6 +47,22 @@ class FitParams(BaseModel):
         ge=0,
         le=1000,
         description="weight of the free-space term, which keeps the surface out of empty space (0: off)",
+    )
+    extraction: Literal["sharp", "mc"] = Field(
+        "sharp",
+        description="mesh extraction: sharp (dual contouring, vertices on edges and corners) or mc (marching cubes)",
+    )
+    edge_angle: float = Field(
+        30.0,
+        gt=0,
+        lt=180,
+        description="sharp extraction: faces whose normals differ by more degrees meet at an edge curve",
+    )
+    edge_width: float = Field(
+        0.01,
+        gt=0,
+        le=0.2,
+        description="sharp extraction: input points this near an edge curve are edge points (normalised frame)",
     )
     resolution: int = Field(160, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from core.curves import Curve, distance_to_curves, edge_curves
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian
 from core.fit import fit
@@ -22,13 +23,19 @@ from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, PREVIEW_POINTS
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
 
+# Edge curves (unit frame): shorter chains of creased mesh edges are noise, not edges; samples
+# every CURVE_SPACING.
+CURVE_MIN_LENGTH = 0.02
+CURVE_SPACING = 0.005
+
 
 @dataclass
 class Reconstruction:
     """The outputs of one reconstruction, in the input's coordinates.
 
     ``edge_laplacian`` holds |Δf| at the edge points in the unit frame, where ``tau`` applies;
-    ``points`` is the input cloud (preview.json samples it).
+    ``curves`` the edge curves (sharp extraction), in the input's coordinates; ``points`` is the
+    input cloud (preview.json samples it).
     """
 
     mesh: trimesh.Trimesh
@@ -38,6 +45,7 @@ class Reconstruction:
     edge_laplacian: np.ndarray
     tau: float
     points: np.ndarray
+    curves: list[Curve] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
 
@@ -50,7 +58,12 @@ class Reconstruction:
         return json.dumps({"normals": np.round(self.normals.astype(np.float64), 6).tolist()}).encode()
 
     def edges_json(self) -> bytes:
-        """``{"tau", "count", "indices", "points", "laplacian"}`` of the edge points."""
+        """``{"tau", "count", "indices", "points", "laplacian", "curves"}``: the edge points, and the
+        edge curves as ``{"points", "dihedral", "convex"}`` (ordered polylines on the edges)."""
+        curves = [
+            {"points": _short(curve.points).tolist(), "dihedral": round(curve.dihedral, 1), "convex": curve.convex}
+            for curve in self.curves
+        ]
         return json.dumps(
             {
                 "tau": self.tau,
@@ -58,6 +71,7 @@ class Reconstruction:
                 "indices": self.edge_indices.tolist(),
                 "points": self.edge_points.tolist(),
                 "laplacian": np.round(self.edge_laplacian.astype(np.float64), 4).tolist(),
+                "curves": curves,
             }
         ).encode()
 
@@ -96,6 +110,7 @@ class Reconstruction:
             "faces": len(self.mesh.faces),
             "watertight": bool(self.mesh.is_watertight),
             "edge_points": len(self.edge_indices),
+            "edge_curves": len(self.curves),
             "timings": {name: round(seconds, 3) for name, seconds in self.timings.items()},
             **self.stats,
         }
@@ -116,10 +131,18 @@ def reconstruct(
 
     if progress is not None:
         progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
-    mesh, stats = extract_mesh(model, params.resolution, unit.min(axis=0), unit.max(axis=0), should_cancel)
-    mesh.vertices = frame.from_unit(mesh.vertices)
+    low, high = unit.min(axis=0), unit.max(axis=0)
+    mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
     normals, laplacian = normals_and_laplacian(model, unit, should_cancel=should_cancel)
-    edges = np.flatnonzero(np.abs(laplacian) > params.tau)
+    curves: list[Curve] = []
+    if params.extraction == "sharp":
+        curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
+        edges = np.flatnonzero(distance_to_curves(unit, curves, CURVE_SPACING) <= params.edge_width)
+    else:
+        edges = np.flatnonzero(np.abs(laplacian) > params.tau)
+    mesh.vertices = frame.from_unit(mesh.vertices)
+    for curve in curves:
+        curve.points = frame.from_unit(curve.points)
     done = time.perf_counter()
 
     return Reconstruction(
@@ -130,6 +153,7 @@ def reconstruct(
         edge_laplacian=np.abs(laplacian[edges]),
         tau=params.tau,
         points=points,
+        curves=curves,
         timings={"fit_seconds": fitted - started, "extract_seconds": done - fitted},
         stats=stats,
     )

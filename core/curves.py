@@ -1,0 +1,156 @@
+"""Edge curves: the sharp edges of a mesh as ordered polylines, and what lies near them.
+
+The dual-contoured mesh (``core.dual``) has its vertices on the sharp edges, so the edges of the
+shape are chains of mesh edges whose two faces meet at a crease. Those chains are followed from
+end to end (or round a loop), lightly smoothed (a vertex of a chain may sit a little off the true
+edge), resampled at a fixed spacing, and each keeps the normals of the faces on its two sides: a
+point near a curve lies on the face whose plane is nearer, which gives it that face's normal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+_SMOOTHING_PASSES = 3
+_DENSE = 5  # a curve is matched against points five times denser than its samples
+
+
+@dataclass
+class Curve:
+    """One sharp edge: ``points`` (m, 3) in order, every ``spacing`` or so along it; ``left`` and
+    ``right`` (m, 3), the unit normals of the faces on its two sides; ``dihedral``, the angle in
+    degrees between those faces, measured through the solid (90 on a cube, 135 on an octagonal
+    prism's sides); ``convex``: the solid's side of the edge is the narrow one."""
+
+    points: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    dihedral: float
+    convex: bool
+
+    @property
+    def length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
+
+
+def edge_curves(mesh: trimesh.Trimesh, angle: float, min_length: float, spacing: float) -> list[Curve]:
+    """The chains of mesh edges whose faces' normals differ by more than ``angle`` degrees,
+    at least ``min_length`` long, resampled every ``spacing`` (all lengths in the mesh's frame)."""
+    pairs = mesh.face_adjacency
+    if len(pairs) == 0:
+        return []
+    sharp = mesh.face_adjacency_angles > np.radians(angle)
+    edges = mesh.face_adjacency_edges[sharp]
+    faces = pairs[sharp]
+    convex = mesh.face_adjacency_convex[sharp]
+    curves = []
+    for chain, steps in _chains(edges):
+        if len(chain) < 2:
+            continue
+        # Measured after smoothing: a zigzag of creases across a face is long only before it.
+        points = _smooth(mesh.vertices[chain])
+        lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        if lengths.sum() < min_length:
+            continue
+        left, right = _sides(mesh, chain, faces[steps])
+        turning = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", left, right), -1, 1)))
+        curves.append(
+            _resample(
+                points,
+                left,
+                right,
+                dihedral=180.0 - float(np.average(turning, weights=lengths + 1e-12)),
+                convex=bool(np.average(convex[steps], weights=lengths + 1e-12) >= 0.5),
+                spacing=spacing,
+            )
+        )
+    return curves
+
+
+def distance_to_curves(points: np.ndarray, curves: list[Curve], spacing: float) -> np.ndarray:
+    """Each point's (n, 3) distance to the nearest curve (inf without curves), to within
+    ``spacing`` / 50 (the curves are matched at a fifth of their spacing)."""
+    if not curves:
+        return np.full(len(points), np.inf)
+    dense = np.concatenate(
+        [_resample(c.points, c.left, c.right, c.dihedral, c.convex, spacing / _DENSE).points for c in curves]
+    )
+    distance, _ = cKDTree(dense).query(points)
+    return distance
+
+
+def _chains(edges: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The sharp edges (e, 2) as chains: vertex sequences and, for each step, the edge's row.
+    A chain runs between vertices that do not have exactly two sharp edges (ends, corners,
+    junctions), or round a loop."""
+    neighbours: dict[int, list[tuple[int, int]]] = {}
+    for row, (u, v) in enumerate(edges.tolist()):
+        neighbours.setdefault(u, []).append((v, row))
+        neighbours.setdefault(v, []).append((u, row))
+    used = np.zeros(len(edges), dtype=bool)
+    chains = []
+    starts = [v for v, around in neighbours.items() if len(around) != 2] + list(neighbours)
+    for start in starts:
+        for first, row in neighbours[start]:
+            if used[row]:
+                continue
+            chain, steps = [start], []
+            vertex, step = first, row
+            while True:
+                used[step] = True
+                chain.append(vertex)
+                steps.append(step)
+                if len(neighbours[vertex]) != 2:
+                    break
+                following = [(w, r) for w, r in neighbours[vertex] if not used[r]]
+                if not following:
+                    break
+                vertex, step = following[0]
+            chains.append((np.asarray(chain), np.asarray(steps)))
+    return chains
+
+
+def _sides(mesh: trimesh.Trimesh, chain: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The unit normals of the faces left and right of each step of a chain (s, 3) each: the left
+    face is the one whose winding runs along the step's direction."""
+    normals = mesh.face_normals
+    first = mesh.faces[faces[:, 0]]
+    u, v = chain[:-1], chain[1:]
+    # Does the first face hold the directed edge u -> v (v follows u in its winding)?
+    position = np.argmax(first == u[:, None], axis=1)
+    forward = first[np.arange(len(first)), (position + 1) % 3] == v
+    left = np.where(forward[:, None], normals[faces[:, 0]], normals[faces[:, 1]])
+    right = np.where(forward[:, None], normals[faces[:, 1]], normals[faces[:, 0]])
+    return left, right
+
+
+def _smooth(points: np.ndarray) -> np.ndarray:
+    """A few passes of averaging each inner vertex with its neighbours (ends stay; a loop's first
+    and last vertex are the same point and move together)."""
+    points = points.copy()
+    loop = len(points) > 2 and np.array_equal(points[0], points[-1])
+    for _ in range(_SMOOTHING_PASSES):
+        inner = (points[:-2] + 2 * points[1:-1] + points[2:]) / 4
+        if loop:
+            points[0] = points[-1] = (points[-2] + 2 * points[0] + points[1]) / 4
+        points[1:-1] = inner
+    return points
+
+
+def _resample(
+    points: np.ndarray, left: np.ndarray, right: np.ndarray, dihedral: float, convex: bool, spacing: float
+) -> Curve:
+    """The polyline ``points`` (k, 3) with per-step ``left``/``right`` normals (k - 1, 3), resampled
+    every ``spacing`` or less (both ends kept), each sample taking its step's normals."""
+    lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(lengths)])
+    count = max(int(np.ceil(along[-1] / spacing)), 1) + 1
+    at = np.linspace(0.0, along[-1], count)
+    step = np.clip(np.searchsorted(along, at, side="right") - 1, 0, len(lengths) - 1)
+    t = np.clip((at - along[step]) / np.where(lengths[step] > 0, lengths[step], 1.0), 0.0, 1.0)
+    samples = points[step] + t[:, None] * (points[step + 1] - points[step])
+    return Curve(samples, left[step], right[step], dihedral, convex)
