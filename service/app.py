@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+import threading
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -145,26 +146,49 @@ def _not_found(job_id: str) -> HTTPException:
     return HTTPException(404, f"no job {job_id} (never submitted, or expired)")
 
 
+@contextmanager
+def _parsing_slot(request: Request) -> Iterator[None]:
+    """One of the ``EDGERECON_MAX_PARSING`` uploads this process parses at once (each costs up to
+    a few hundred MB and seconds of CPU); 503 with ``Retry-After`` when all are taken."""
+    parsing: threading.BoundedSemaphore = request.app.state.parsing
+    if not parsing.acquire(blocking=False):
+        detail = "this API process is checking as many uploads as it may at once: try again in a moment"
+        raise HTTPException(503, detail, headers={"Retry-After": "2"})
+    try:
+        yield
+    finally:
+        parsing.release()
+
+
 @v1.post(
     "/jobs",
     status_code=202,
     response_model=JobView,
-    responses={400: {"model": ErrorBody, "description": "not a usable point cloud"}, 413: {"model": ErrorBody}},
+    responses={
+        400: {"model": ErrorBody, "description": "not a usable point cloud"},
+        408: {"model": ErrorBody, "description": "the upload stalled"},
+        413: {"model": ErrorBody},
+        503: {"model": ErrorBody, "description": "too many uploads at once, or Redis is unavailable: retry"},
+    },
 )
 def submit_job(
     form: Annotated[JobForm, Form(media_type="multipart/form-data")],
     store: Store,
     settings: AppSettings,
+    request: Request,
     response: Response,
 ) -> JobView:
     """Submit a cloud for reconstruction. The job is queued; poll ``Location`` for its status."""
-    try:
-        points = read_points(form.points.file.read(), min_points=settings.min_points, max_points=settings.max_points)
-    except PointCloudError as error:
-        raise HTTPException(400, f"points: {error}") from None
-    params = FitParams(**form.model_dump(exclude={"points"}))
-    job_id = new_job_id()
-    store.create(job_id, points, params)
+    with _parsing_slot(request):
+        try:
+            points = read_points(
+                form.points.file.read(), min_points=settings.min_points, max_points=settings.max_points, compact=True
+            )
+        except PointCloudError as error:
+            raise HTTPException(400, f"points: {error}") from None
+        params = FitParams(**form.model_dump(exclude={"points"}))
+        job_id = new_job_id()
+        store.create(job_id, points, params)
     log.info("job %s queued: %d points, %s", job_id, len(points), params.model_dump())
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     record = store.get(job_id)
@@ -296,6 +320,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
     )
     app.state.settings = settings
+    app.state.parsing = threading.BoundedSemaphore(settings.max_parsing)
     app.include_router(v1)
     app.include_router(health)
     app.include_router(formats_router)  # the mesh in other formats: mesh.ply, mesh.stl, mesh.glb
@@ -304,7 +329,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RedisError, _redis_unavailable)
     app.add_exception_handler(Exception, _internal_error)
     api_key = settings.api_key.get_secret_value() if settings.api_key else None
-    app.add_middleware(RequestGuard, max_body_bytes=settings.max_upload_bytes, api_key=api_key)
+    app.add_middleware(
+        RequestGuard,
+        max_body_bytes=settings.max_upload_bytes,
+        api_key=api_key,
+        max_uploads=settings.max_uploads,
+        body_idle_timeout=settings.body_idle_timeout,
+    )
     install_metrics(app)  # GET /metrics, and the outermost middleware, which counts every request
     return app
 
