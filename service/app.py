@@ -289,7 +289,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     if not settings.redis_url:
         raise RuntimeError("REDIS_URL is not set: point it at the Redis the workers use (or run `edgerecon serve`)")
-    redis, async_redis = connect(settings.redis_url, fail_fast=True), connect_async(settings.redis_url)
+    timeouts = {"connect_timeout": settings.redis_connect_timeout, "socket_timeout": settings.redis_socket_timeout}
+    redis, async_redis = (
+        connect(settings.redis_url, fail_fast=True, **timeouts),
+        connect_async(settings.redis_url, **timeouts),
+    )
     app.state.store = JobStore(redis, settings, async_redis)
     app.state.registry = WorkerRegistry(redis, settings, async_redis)
     sweeper = asyncio.create_task(_sweep_orphans(app.state.store, settings.sweep_interval))

@@ -43,6 +43,14 @@ class Settings(BaseSettings):
         30.0, gt=0, description="seconds an upload may send nothing before it is dropped with 408"
     )
 
+    # The API's Redis clients: a hung or lost Redis must turn into a prompt 503, not a hung request.
+    redis_connect_timeout: float = Field(
+        0.5, gt=0, le=30, description="seconds the API waits to connect to Redis before answering 503"
+    )
+    redis_socket_timeout: float = Field(
+        0.5, gt=0, le=30, description="seconds the API waits for an answer of Redis before answering 503"
+    )
+
     # Lifetimes.
     job_ttl: int = Field(
         24 * 3600, ge=1, description="seconds a job, its input and its results are kept after its last change"

@@ -189,6 +189,7 @@ class JobStore:
 
     def create(self, job_id: str, points: np.ndarray, params: FitParams) -> None:
         """Store the input and the record of a new job and enqueue it, all in one transaction."""
+        self.redis.ping()  # a hung Redis fails here, before a write it might apply after the API answered 503
         packed = _pack_array(points)
         record: dict[Any, Any] = {  # typed as redis-py's hset wants it
             "status": JobStatus.QUEUED.value,

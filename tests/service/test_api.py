@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -410,3 +411,44 @@ print("torch" in sys.modules)
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"
+
+
+def test_every_route_answers_503_within_a_second_while_redis_hangs_and_post_stores_nothing(tmp_path):
+    """Redis stopped with SIGSTOP (a hung server: connections open, nothing answers), then resumed."""
+    redis = RedisServer(tmp_path).start()
+    service = Service(redis.url, tmp_path)
+    try:
+        service.start_api()
+        job = service.submit(ply_binary(sphere(300)))["id"]
+        keys = service.keys()
+        assert redis.process is not None
+        redis.process.send_signal(signal.SIGSTOP)
+        cloud = {"points": ("s.ply", ply_binary(sphere(300)))}
+        with service.client() as client:
+            for method, path in [
+                ("GET", "/healthz"),
+                ("POST", "/v1/jobs"),
+                ("GET", f"/v1/jobs/{job}"),
+                ("DELETE", f"/v1/jobs/{job}"),
+                ("GET", f"/v1/jobs/{job}/mesh.obj"),
+                ("GET", f"/v1/jobs/{job}/mesh.glb"),
+                ("GET", f"/v1/jobs/{job}/events"),
+                ("GET", f"/v1/jobs/{job}"),  # again, on connections that timed out before
+                ("POST", "/v1/jobs"),
+            ]:
+                started = time.monotonic()
+                response = client.request(method, path, files=cloud if method == "POST" else None)
+                elapsed = time.monotonic() - started
+                assert response.status_code == 503, (method, path, response.text)
+                assert elapsed < 1.2, f"{method} {path}: {elapsed:.2f} s"
+            redis.process.send_signal(signal.SIGCONT)
+            wait_for(lambda: client.get("/healthz").status_code == 200, 10, 0.2, "the API to see Redis again")
+            time.sleep(0.5)  # anything a hung request left in Redis's buffers has been applied by now
+            assert service.keys() == keys  # the POSTs answered 503 stored nothing
+            assert client.get(f"/v1/jobs/{job}").json()["status"] == "queued"
+            assert service.submit(ply_binary(sphere(300)))["status"] == "queued"
+    finally:
+        if redis.process is not None:
+            redis.process.send_signal(signal.SIGCONT)
+        service.stop()
+        redis.stop()
