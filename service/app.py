@@ -32,6 +32,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, File, Form, HTTPException, Request, Response, Security, UploadFile
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBearer
 from pydantic import BaseModel, Field
@@ -44,7 +45,7 @@ from service.events import events_router
 from service.formats import MESH_FILES
 from service.formats import router as formats_router
 from service.metrics import install as install_metrics
-from service.middleware import RequestGuard
+from service.middleware import HttpMethods, RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
 from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
@@ -160,6 +161,25 @@ def _parsing_slot(request: Request) -> Iterator[None]:
         parsing.release()
 
 
+async def _strict_form(request: Request) -> None:
+    """422 for what FastAPI would let through silently: an empty value (it would become the
+    default) and a field given twice (the last would win), a second ``points`` file included."""
+    form = await request.form()  # already parsed for the route: FastAPI caches it on the request
+    problems = []
+    for name in dict.fromkeys(form.keys()):
+        values = form.getlist(name)
+        if len(values) > 1:
+            problems.append(
+                {"type": "repeated", "loc": ["body", name], "msg": f"'{name}' is given {len(values)} times"}
+            )
+        elif values[0] == "":
+            problems.append(
+                {"type": "empty", "loc": ["body", name], "msg": f"'{name}' is empty: give a value or leave it out"}
+            )
+    if problems:
+        raise RequestValidationError(problems)
+
+
 @v1.post(
     "/jobs",
     status_code=202,
@@ -173,6 +193,7 @@ def _parsing_slot(request: Request) -> Iterator[None]:
 )
 def submit_job(
     form: Annotated[JobForm, Form(media_type="multipart/form-data")],
+    _strict: Annotated[None, Depends(_strict_form)],
     store: Store,
     settings: AppSettings,
     request: Request,
@@ -340,6 +361,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_uploads=settings.max_uploads,
         body_idle_timeout=settings.body_idle_timeout,
     )
+    app.add_middleware(HttpMethods, routes=app.router.routes)
     install_metrics(app)  # GET /metrics, and the outermost middleware, which counts every request
     return app
 

@@ -17,6 +17,7 @@ import json
 import secrets
 
 from starlette.datastructures import Headers
+from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 
@@ -121,3 +122,52 @@ async def _answer(send: Send, status: int, detail: str, headers: list[tuple[byte
         }
     )
     await send({"type": "http.response.body", "body": body})
+
+
+_METHODS = ("GET", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+class _HeadAnswered(Exception):
+    """Raised into the app once a HEAD request's headers are sent: nothing more is wanted of it."""
+
+
+class HttpMethods:
+    """HEAD wherever GET is served (FastAPI routes answer only the methods they declare), and on a
+    405 an ``Allow`` that lists every method of the path, not just those of the first route that
+    matched it (``/v1/jobs/{id}`` is two routes: GET and DELETE)."""
+
+    def __init__(self, app: ASGIApp, *, routes: list[BaseRoute]):
+        self.app = app
+        self.routes = routes  # the application's list: routers included later are seen
+
+    def _methods(self, scope: Scope) -> set[str]:
+        """The methods some route serves at this path (asked of the routes themselves, which
+        FastAPI nests in included routers)."""
+        methods = {
+            method
+            for method in _METHODS
+            if any(route.matches({**scope, "method": method})[0] == Match.FULL for route in self.routes)
+        }
+        return methods | ({"HEAD"} if "GET" in methods else set())
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        head = scope["method"] == "HEAD" and "GET" in self._methods(scope)
+        if head:
+            scope = {**scope, "method": "GET"}
+
+        async def amended_send(message: Message) -> None:
+            if message["type"] == "http.response.start" and message["status"] == 405:
+                allow = ", ".join(sorted(self._methods(scope))).encode()
+                headers = [(name, value) for name, value in message.get("headers", []) if name.lower() != b"allow"]
+                message = {**message, "headers": [*headers, (b"allow", allow)]}
+            await send(message)
+            if head and message["type"] == "http.response.start":
+                await send({"type": "http.response.body", "body": b""})
+                raise _HeadAnswered()
+
+        try:
+            await self.app(scope, receive, amended_send)
+        except _HeadAnswered:
+            pass
