@@ -158,8 +158,11 @@ class HttpMethods:
             scope = {**scope, "method": "GET"}
 
         async def amended_send(message: Message) -> None:
-            if message["type"] == "http.response.start" and message["status"] == 405:
-                allow = ", ".join(sorted(self._methods(scope))).encode()
+            methods = (
+                self._methods(scope) if message["type"] == "http.response.start" and message["status"] == 405 else None
+            )
+            if methods:  # (a mount, such as /static, answers its own 405)
+                allow = ", ".join(sorted(methods)).encode()
                 headers = [(name, value) for name, value in message.get("headers", []) if name.lower() != b"allow"]
                 message = {**message, "headers": [*headers, (b"allow", allow)]}
             await send(message)
@@ -169,5 +172,12 @@ class HttpMethods:
 
         try:
             await self.app(scope, receive, amended_send)
-        except _HeadAnswered:
-            pass
+        except BaseException as error:
+            if not _only_head_answered(error):  # a streaming response raises it inside a task group
+                raise
+
+
+def _only_head_answered(error: BaseException) -> bool:
+    if isinstance(error, BaseExceptionGroup):
+        return all(_only_head_answered(inner) for inner in error.exceptions)
+    return isinstance(error, _HeadAnswered)

@@ -498,6 +498,10 @@ def test_head_works_wherever_get_does_and_allow_lists_every_method(api):
             assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
         assert client.head(f"/v1/jobs/{job}/mesh.obj").status_code == 409  # as GET answers
         assert client.head("/v1/jobs/" + "A" * 22).status_code == 404
+        assert client.head("/static/page.css").status_code == 200
+        events = client.head(f"/v1/jobs/{job}/events")  # a stream: the headers, and no wait for the job
+        assert events.status_code == 200 and events.headers["content-type"].startswith("text/event-stream")
+        assert client.get("/healthz").status_code == 200  # the connection survives the cut stream
         for method, path, allowed in [
             ("PUT", f"/v1/jobs/{job}", "DELETE, GET, HEAD"),
             ("POST", "/healthz", "GET, HEAD"),
