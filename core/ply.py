@@ -24,7 +24,8 @@ from core.errors import PointCloudError
 MIN_POINTS = 100
 MAX_POINTS = 5_000_000
 _MAX_HEADER_BYTES = 64 * 1024
-_CHUNK_BYTES = 1 << 20  # ASCII lines are counted a chunk at a time, so memory stays bounded
+_CHUNK_BYTES = 1 << 20  # ASCII lines are counted and parsed a chunk at a time, so memory stays bounded
+_ROWS_PER_BLOCK = 1 << 18  # rows per block of the checks on a cloud
 
 _FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 # PLY's type names, the sized names many writers use, and numpy's codes, which some writers use too.
@@ -81,11 +82,14 @@ def read_points(
     *,
     min_points: int = MIN_POINTS,
     max_points: int = MAX_POINTS,
+    compact: bool = False,
 ) -> np.ndarray:
     """Return the vertex positions of a PLY file as an (N, 3) float64 array, in file order.
 
     ``source`` is the file's content or its path. Raises ``PointCloudError`` with a message a
-    user understands when the file is not a usable cloud (see ``check_points``).
+    user understands when the file is not a usable cloud (see ``check_points``). ``compact``
+    returns float32 when every coordinate is declared float32 or a 1- or 2-byte integer (float32
+    holds those exactly), to halve the memory of a large cloud (the API stores it so).
     """
     if isinstance(source, (bytes, bytearray, memoryview)):
         data = bytes(source)
@@ -96,38 +100,66 @@ def read_points(
     vertex = header.element("vertex")
     if vertex is None:
         raise PointCloudError("the PLY file has no 'vertex' element")
-    missing = [axis for axis in "xyz" if axis not in [prop.name for prop in vertex.properties]]
+    types = {prop.name: prop.type for prop in vertex.properties}
+    missing = [axis for axis in "xyz" if axis not in types]
     if missing:
         raise PointCloudError(f"the vertex element has no {', '.join(missing)} property")
     if vertex.has_lists:
         raise PointCloudError("the vertex element has list properties, which are not supported")
     if header.format == "ascii":
-        columns = _read_ascii_vertices(data, header, vertex)
+        _check_ascii_lines(data, header)
     else:
-        columns = _read_binary_vertices(data, header)
-    points = np.stack([np.asarray(columns[axis], dtype=np.float64) for axis in "xyz"], axis=1)
+        vertices = _read_binary_vertices(data, header)  # a view on data: checks the layout, allocates nothing
+    _check_count(vertex.count, min_points, max_points)  # before the points are allocated
+    exact_in_float32 = all(types[axis] in ("f4", "i1", "u1", "i2", "u2") for axis in "xyz")
+    points = np.empty((vertex.count, 3), np.float32 if compact and exact_in_float32 else np.float64)
+    with np.errstate(all="ignore"):  # values are checked explicitly, below and in check_points
+        if header.format == "ascii":
+            _read_ascii_vertices(data, header, vertex, points)
+        else:
+            for index, axis in enumerate("xyz"):
+                points[:, index] = vertices[axis]
+            del vertices
+    del data  # the file's bytes (and any view on them) go before the checks allocate
     return check_points(points, min_points=min_points, max_points=max_points)
 
 
+def _check_count(count: int, min_points: int, max_points: int) -> None:
+    if count < min_points:
+        raise PointCloudError(f"the cloud has {count} points; at least {min_points} are needed")
+    if count > max_points:
+        raise PointCloudError(f"the cloud has {count} points; at most {max_points} are accepted")
+
+
 def check_points(points: np.ndarray, *, min_points: int = MIN_POINTS, max_points: int = MAX_POINTS) -> np.ndarray:
-    """Validate an (N, 3) array of positions and return it as float64.
+    """Validate an (N, 3) array of positions and return it (float32 stays float32, else float64).
 
     Rejects non-finite coordinates, fewer than ``min_points`` or more than ``max_points``
     points, and clouds that span fewer than two dimensions (all points equal, or collinear).
+    The checks work a block of rows at a time, so they add little memory to a large cloud.
     """
-    points = np.asarray(points, dtype=np.float64)
+    points = np.asarray(points)
+    if points.dtype != np.float32:
+        points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise PointCloudError(f"expected points with 3 coordinates, got an array of shape {points.shape}")
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         raise PointCloudError(f"{int(bad.sum())} points have NaN or infinite coordinates (the first is vertex {first})")
-    if len(points) < min_points:
-        raise PointCloudError(f"the cloud has {len(points)} points; at least {min_points} are needed")
-    if len(points) > max_points:
-        raise PointCloudError(f"the cloud has {len(points)} points; at most {max_points} are accepted")
+    _check_count(len(points), min_points, max_points)
     # The spread along the principal axes: a cloud on a line (or a point) has no surface to fit.
-    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(points.T)), 0.0))[::-1]
+    # Computed on the cloud scaled into the unit box, so that huge coordinates cannot overflow.
+    low, high = points.min(axis=0).astype(np.float64), points.max(axis=0).astype(np.float64)
+    center, scale = low / 2 + high / 2, float(np.max(high / 2 - low / 2)) or 1.0  # halves: no overflow
+    mean, scatter = np.zeros(3), np.zeros((3, 3))
+    for start in range(0, len(points), _ROWS_PER_BLOCK):
+        mean += ((points[start : start + _ROWS_PER_BLOCK] - center) / scale).sum(axis=0)
+    mean /= len(points)
+    for start in range(0, len(points), _ROWS_PER_BLOCK):
+        block = (points[start : start + _ROWS_PER_BLOCK] - center) / scale - mean
+        scatter += block.T @ block
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(scatter / len(points)), 0.0))[::-1]
     if spread[0] == 0.0 or spread[1] <= 1e-6 * spread[0]:
         raise PointCloudError("the points are all equal or lie on one line: there is no surface to fit")
     return points
@@ -242,51 +274,67 @@ def _read_binary_vertices(data: bytes, header: Header) -> dict[str, np.ndarray]:
     return {name: vertices[name] for name in vertices.dtype.names or ()}
 
 
-def _read_ascii_vertices(data: bytes, header: Header, vertex: Element) -> dict[str, np.ndarray]:
-    """The vertex properties of an ASCII body by name, each in its declared type.
+def _read_ascii_vertices(data: bytes, header: Header, vertex: Element, out: np.ndarray) -> None:
+    """Parse the vertex rows of an ASCII body into ``out`` (N, 3: x y z), about a megabyte at a time.
 
     Rows are lines, whatever their element, so the lines of the elements before the vertices are
-    skipped unread, and nothing after them is read at all.
+    skipped unread, and nothing after them is read at all. Parsing a block at a time keeps the
+    memory bounded whatever the number of properties per row.
     """
+    start = header.body_start
+    for element in header.elements[: header.elements.index(vertex)]:
+        start = _after_lines(data, start, element.count)
+    stop = _after_lines(data, start, vertex.count)
+    names = [prop.name for prop in vertex.properties]
+    xyz = [names.index(axis) for axis in "xyz"]
+    row = 0
+    while start < stop:
+        end = data.rfind(b"\n", start, min(start + _CHUNK_BYTES, stop)) + 1
+        if end <= start or stop - start <= _CHUNK_BYTES:  # the last block, or one line longer than a block
+            end = stop if stop - start <= _CHUNK_BYTES else data.find(b"\n", start, stop) + 1 or stop
+        block = data[start:end]
+        count = block.count(b"\n") + (0 if block.endswith(b"\n") else 1)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # a block of blank lines: "input contained no data"
+                table = np.loadtxt(io.BytesIO(block), dtype=np.float64, comments=None, ndmin=2)
+        except ValueError as error:
+            raise PointCloudError(
+                f"malformed ASCII PLY: element 'vertex': {_bad_row(block, vertex, row) or error}"
+            ) from None
+        if table.shape != (count, len(names)):  # blank lines (numpy skips them) or a column too many
+            raise PointCloudError(f"malformed ASCII PLY: element 'vertex': {_bad_row(block, vertex, row)}")
+        for index, prop in enumerate(vertex.properties):
+            column = table[:, index]
+            if prop.type[0] in "iu":  # an integer property holds integers in its type's range
+                limits = np.iinfo(prop.type)
+                wrong = np.flatnonzero((column != np.round(column)) | (column < limits.min) | (column > limits.max))
+                if len(wrong):
+                    raise PointCloudError(
+                        f"malformed ASCII PLY: element 'vertex': row {row + int(wrong[0])}: property '{prop.name}': "
+                        f"not a valid {np.dtype(prop.type).name}"
+                    )
+        for axis, index in enumerate(xyz):  # through the declared type, as a binary file would hold it
+            out[row : row + count, axis] = table[:, index].astype(vertex.properties[index].type)
+        row, start = row + count, end
+    if row != vertex.count:
+        raise PointCloudError(f"malformed ASCII PLY: element 'vertex': {_bad_row(b'', vertex, row)}")
+
+
+def _check_ascii_lines(data: bytes, header: Header) -> None:
+    """An ASCII row is a line: refuse a header that declares more rows than the file has lines."""
     start = header.body_start
     lines = data.count(b"\n", start) + (0 if data.endswith(b"\n") or start == len(data) else 1)
     declared = sum(element.count for element in header.elements)
     if declared > lines:
         raise PointCloudError(f"the header declares {declared} rows but the file holds only {lines} lines")
-    for element in header.elements[: header.elements.index(vertex)]:
-        start = _after_lines(data, start, element.count)
-    rows = data[start : _after_lines(data, start, vertex.count)]
-    names = [prop.name for prop in vertex.properties]
-    table = np.zeros((0, len(names)))
-    if vertex.count:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # a block of blank lines: "input contained no data"
-                table = np.loadtxt(io.BytesIO(rows), dtype=np.float64, comments=None, ndmin=2)
-        except ValueError as error:
-            raise PointCloudError(f"malformed ASCII PLY: element 'vertex': {_bad_row(rows, vertex) or error}") from None
-    if table.shape != (vertex.count, len(names)):  # blank lines (numpy skips them) or a column too many
-        raise PointCloudError(f"malformed ASCII PLY: element 'vertex': {_bad_row(rows, vertex)}")
-    columns = {}
-    for index, prop in enumerate(vertex.properties):
-        column = table[:, index]
-        if prop.type[0] in "iu":  # an integer property holds integers in its type's range
-            limits = np.iinfo(prop.type)
-            wrong = np.flatnonzero((column != np.round(column)) | (column < limits.min) | (column > limits.max))
-            if len(wrong):
-                row = int(wrong[0])
-                raise PointCloudError(
-                    f"malformed ASCII PLY: element 'vertex': row {row}: property '{prop.name}': "
-                    f"not a valid {np.dtype(prop.type).name}"
-                )
-        columns[prop.name] = column.astype(prop.type)
-    return columns
 
 
-def _bad_row(rows: bytes, vertex: Element) -> str | None:
-    """Where the first malformed row of ``rows`` (the vertex lines) goes wrong, as plyfile said it."""
+def _bad_row(rows: bytes, vertex: Element, first: int) -> str | None:
+    """Where the first malformed row of ``rows`` (vertex lines from row ``first``) goes wrong, as
+    plyfile said it."""
     names = [prop.name for prop in vertex.properties]
-    for row, line in enumerate(rows.split(b"\n")[: vertex.count]):
+    for row, line in enumerate(rows.split(b"\n")[: vertex.count - first], first):
         words = line.split()
         for name, word in zip(names, words):
             if not _NUMBER.fullmatch(word):
@@ -295,6 +343,8 @@ def _bad_row(rows: bytes, vertex: Element) -> str | None:
             return f"row {row}: property '{names[len(words)]}': early end-of-line"
         if len(words) > len(names):
             return f"row {row}: expected end-of-line"
+    if first < vertex.count:
+        return f"row {first}: property '{names[0]}': early end-of-line"
     return None
 
 

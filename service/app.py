@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+import threading
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, File, Form, HTTPException, Request, Response, Security, UploadFile
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBearer
 from pydantic import BaseModel, Field
@@ -43,7 +45,7 @@ from service.events import events_router
 from service.formats import MESH_FILES
 from service.formats import router as formats_router
 from service.metrics import install as install_metrics
-from service.middleware import RequestGuard
+from service.middleware import HttpMethods, RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
 from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
@@ -145,26 +147,69 @@ def _not_found(job_id: str) -> HTTPException:
     return HTTPException(404, f"no job {job_id} (never submitted, or expired)")
 
 
+@contextmanager
+def _parsing_slot(request: Request) -> Iterator[None]:
+    """One of the ``EDGERECON_MAX_PARSING`` uploads this process parses at once (each costs up to
+    a few hundred MB and seconds of CPU); 503 with ``Retry-After`` when all are taken."""
+    parsing: threading.BoundedSemaphore = request.app.state.parsing
+    if not parsing.acquire(blocking=False):
+        detail = "this API process is checking as many uploads as it may at once: try again in a moment"
+        raise HTTPException(503, detail, headers={"Retry-After": "2"})
+    try:
+        yield
+    finally:
+        parsing.release()
+
+
+async def _strict_form(request: Request) -> None:
+    """422 for what FastAPI would let through silently: an empty value (it would become the
+    default) and a field given twice (the last would win), a second ``points`` file included."""
+    form = await request.form()  # already parsed for the route: FastAPI caches it on the request
+    problems = []
+    for name in dict.fromkeys(form.keys()):
+        values = form.getlist(name)
+        if len(values) > 1:
+            problems.append(
+                {"type": "repeated", "loc": ["body", name], "msg": f"'{name}' is given {len(values)} times"}
+            )
+        elif values[0] == "":
+            problems.append(
+                {"type": "empty", "loc": ["body", name], "msg": f"'{name}' is empty: give a value or leave it out"}
+            )
+    if problems:
+        raise RequestValidationError(problems)
+
+
 @v1.post(
     "/jobs",
     status_code=202,
     response_model=JobView,
-    responses={400: {"model": ErrorBody, "description": "not a usable point cloud"}, 413: {"model": ErrorBody}},
+    responses={
+        400: {"model": ErrorBody, "description": "not a usable point cloud"},
+        408: {"model": ErrorBody, "description": "the upload stalled"},
+        413: {"model": ErrorBody},
+        503: {"model": ErrorBody, "description": "too many uploads at once, or Redis is unavailable: retry"},
+    },
 )
 def submit_job(
     form: Annotated[JobForm, Form(media_type="multipart/form-data")],
+    _strict: Annotated[None, Depends(_strict_form)],
     store: Store,
     settings: AppSettings,
+    request: Request,
     response: Response,
 ) -> JobView:
     """Submit a cloud for reconstruction. The job is queued; poll ``Location`` for its status."""
-    try:
-        points = read_points(form.points.file.read(), min_points=settings.min_points, max_points=settings.max_points)
-    except PointCloudError as error:
-        raise HTTPException(400, f"points: {error}") from None
-    params = FitParams(**form.model_dump(exclude={"points"}))
-    job_id = new_job_id()
-    store.create(job_id, points, params)
+    with _parsing_slot(request):
+        try:
+            points = read_points(
+                form.points.file.read(), min_points=settings.min_points, max_points=settings.max_points, compact=True
+            )
+        except PointCloudError as error:
+            raise HTTPException(400, f"points: {error}") from None
+        params = FitParams(**form.model_dump(exclude={"points"}))
+        job_id = new_job_id()
+        store.create(job_id, points, params)
     log.info("job %s queued: %d points, %s", job_id, len(points), params.model_dump())
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     record = store.get(job_id)
@@ -265,7 +310,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     if not settings.redis_url:
         raise RuntimeError("REDIS_URL is not set: point it at the Redis the workers use (or run `edgerecon serve`)")
-    redis, async_redis = connect(settings.redis_url, fail_fast=True), connect_async(settings.redis_url)
+    timeouts = {"connect_timeout": settings.redis_connect_timeout, "socket_timeout": settings.redis_socket_timeout}
+    redis, async_redis = (
+        connect(settings.redis_url, fail_fast=True, **timeouts),
+        connect_async(settings.redis_url, **timeouts),
+    )
     app.state.store = JobStore(redis, settings, async_redis)
     app.state.registry = WorkerRegistry(redis, settings, async_redis)
     sweeper = asyncio.create_task(_sweep_orphans(app.state.store, settings.sweep_interval))
@@ -296,6 +345,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
     )
     app.state.settings = settings
+    app.state.parsing = threading.BoundedSemaphore(settings.max_parsing)
     app.include_router(v1)
     app.include_router(health)
     app.include_router(formats_router)  # the mesh in other formats: mesh.ply, mesh.stl, mesh.glb
@@ -304,7 +354,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RedisError, _redis_unavailable)
     app.add_exception_handler(Exception, _internal_error)
     api_key = settings.api_key.get_secret_value() if settings.api_key else None
-    app.add_middleware(RequestGuard, max_body_bytes=settings.max_upload_bytes, api_key=api_key)
+    app.add_middleware(
+        RequestGuard,
+        max_body_bytes=settings.max_upload_bytes,
+        api_key=api_key,
+        max_uploads=settings.max_uploads,
+        body_idle_timeout=settings.body_idle_timeout,
+    )
+    app.add_middleware(HttpMethods, routes=app.router.routes)
     install_metrics(app)  # GET /metrics, and the outermost middleware, which counts every request
     return app
 

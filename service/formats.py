@@ -14,7 +14,6 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response, Security
 from fastapi.security import HTTPBearer
 
-from core.mesh_formats import convert_obj
 from worker.contract import JobStatus, is_job_id
 from worker.store import JobStore
 
@@ -41,6 +40,8 @@ def _converted(request: Request, job_id: str, name: str) -> Response:
         raise HTTPException(404, f"no job {job_id} (never submitted, or expired)")
     if status != JobStatus.SUCCEEDED or obj is None:
         raise HTTPException(409, f"the job is {status}: {name} exists once it has succeeded")
+    from core.mesh_formats import convert_obj  # trimesh and scipy: 60 MB that an API never converting need not hold
+
     content = convert_obj(obj, name.removeprefix("mesh."))
     disposition = {"Content-Disposition": f'attachment; filename="{name}"'}
     return Response(content, media_type=MEDIA_TYPES[name], headers=disposition)

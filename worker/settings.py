@@ -33,6 +33,23 @@ class Settings(BaseSettings):
     )
     min_points: int = Field(MIN_POINTS, ge=1, description="fewest points a cloud may have")
     max_points: int = Field(MAX_POINTS, ge=1, description="most points a cloud may have")
+    max_uploads: int = Field(
+        16, ge=1, description="uploads one API process receives and checks at once (each spools to disk); 503 beyond"
+    )
+    max_parsing: int = Field(
+        2, ge=1, description="uploads one API process parses and stores at once (each costs CPU and memory); 503 beyond"
+    )
+    body_idle_timeout: float = Field(
+        30.0, gt=0, description="seconds an upload may send nothing before it is dropped with 408"
+    )
+
+    # The API's Redis clients: a hung or lost Redis must turn into a prompt 503, not a hung request.
+    redis_connect_timeout: float = Field(
+        0.5, gt=0, le=30, description="seconds the API waits to connect to Redis before answering 503"
+    )
+    redis_socket_timeout: float = Field(
+        0.5, gt=0, le=30, description="seconds the API waits for an answer of Redis before answering 503"
+    )
 
     # Lifetimes.
     job_ttl: int = Field(

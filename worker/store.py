@@ -119,6 +119,31 @@ def _pack(data: bytes, level: int = 6) -> bytes:
     return zlib.compress(data, level)
 
 
+class _Deflating:
+    """A write-only file that deflates what ``np.save`` writes into it, block by block, so that a
+    large cloud is never held both as .npy bytes and compressed (the API's memory per upload)."""
+
+    def __init__(self, level: int):
+        self._deflate = zlib.compressobj(level)
+        self.output = io.BytesIO()
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.output.write(self._deflate.compress(data))
+        return len(data)
+
+    def close(self) -> memoryview:
+        self.output.write(self._deflate.flush())
+        return self.output.getbuffer()
+
+
+def _pack_array(points: np.ndarray) -> memoryview:
+    """``points`` as .npy, deflated at level 1: five times faster than 6 on coordinates, for a
+    tenth more bytes; read only once."""
+    sink = _Deflating(level=1)
+    np.save(sink, points, allow_pickle=False)
+    return sink.close()
+
+
 class JobStore:
     """The jobs of one service (one key prefix and one queue) in one Redis."""
 
@@ -164,8 +189,8 @@ class JobStore:
 
     def create(self, job_id: str, points: np.ndarray, params: FitParams) -> None:
         """Store the input and the record of a new job and enqueue it, all in one transaction."""
-        buffer = io.BytesIO()
-        np.save(buffer, points, allow_pickle=False)
+        self.redis.ping()  # a hung Redis fails here, before a write it might apply after the API answered 503
+        packed = _pack_array(points)
         record: dict[Any, Any] = {  # typed as redis-py's hset wants it
             "status": JobStatus.QUEUED.value,
             "params": params.model_dump_json(),
@@ -174,8 +199,7 @@ class JobStore:
         }
         with self.redis.pipeline() as pipe:
             pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
-            # Level 1: five times faster than 6 on coordinates, for a tenth more bytes; read only once.
-            pipe.set(self._key(job_id, "points"), _pack(buffer.getvalue(), level=1), ex=self.ttl)
+            pipe.set(self._key(job_id, "points"), packed, ex=self.ttl)
             pipe.hset(self._key(job_id), mapping=record)
             pipe.expire(self._key(job_id), self.ttl)
             pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
@@ -318,7 +342,8 @@ class JobStore:
         blob = self.redis.get(self._key(job_id, "points"))
         if blob is None:
             raise InputExpired()
-        return np.load(io.BytesIO(zlib.decompress(cast(bytes, blob))), allow_pickle=False)
+        points = np.load(io.BytesIO(zlib.decompress(cast(bytes, blob))), allow_pickle=False)
+        return points.astype(np.float64, copy=False)  # the API stores float32 when that is exact
 
     def set_progress(self, job_id: str, progress: Progress) -> bool:
         """Record the progress of a running job (a change: its keys' expiry restarts); False when it

@@ -331,3 +331,103 @@ def test_reading_and_params_do_not_import_torch():
     result = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"
+
+
+# --- bounded cost, and only our own error on any input -------------------------------------------
+
+
+def test_huge_coordinates_are_checked_without_overflow():
+    """Finite but huge doubles once overflowed the covariance into LinAlgError (a 500 in the API)."""
+    points = POINTS * 1e300
+    assert read_points(binary_ply(points, dtype="<f8")).shape == (N, 3)
+    expect_error(binary_ply(np.outer(np.arange(N), [1e300, 1e300, 0]), dtype="<f8"), "one line")
+
+
+def test_compact_keeps_float32_clouds_in_float32_and_doubles_in_float64():
+    assert read_points(binary_ply(), compact=True).dtype == np.float32
+    np.testing.assert_array_equal(read_points(binary_ply(), compact=True), read_points(binary_ply()))
+    assert read_points(binary_ply(dtype="<f8"), compact=True).dtype == np.float64
+    assert read_points(ascii_ply(), compact=True).dtype == np.float32
+
+
+def test_a_list_typed_coordinate_is_refused():
+    for fmt in ("ascii", "binary_little_endian"):
+        props = ("list uchar float x", "float y", "float z")
+        expect_error(header(fmt, props=props) + b"1 0.5 0.5 0.5\n" * N, "list properties")
+
+
+def test_ascii_vertices_with_many_properties_are_parsed_in_bounded_memory():
+    """200 one-digit properties per row: a whole-table parse holds 8 bytes per digit (32 MB here); a
+    parse a block at a time holds about ten times a block's text, whatever the file's size."""
+    rows = np.random.default_rng(1).integers(0, 10, size=(20_000, 203))
+    props = ("float x", "float y", "float z", *(f"uchar p{i}" for i in range(200)))
+    data = header("ascii", len(rows), props=props) + "".join(" ".join(map(str, row)) + "\n" for row in rows).encode()
+    tracemalloc.start()
+    try:
+        points = read_points(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(points, rows[:, :3])
+    assert peak < 16 * 2**20, f"{peak / 2**20:.1f} MiB for {len(data) / 2**20:.1f} MiB of text"
+
+
+def _seeds() -> list[bytes]:
+    """Valid files in every format, with an extra vertex property and a face element after the vertices."""
+    props = ("float x", "double y", "float z", "uchar red")
+    faces = FACE_LIST.format(n=2)
+    rows = "".join(f"{x:.5f} {y:.5f} {z:.5f} 7\n" for x, y, z in POINTS.tolist()).encode()
+    seeds = [header("ascii", props=props, extra=faces) + rows + b"3 0 1 2\n4 0 1 2 3\n"]
+    for order, fmt in (("<", "binary_little_endian"), (">", "binary_big_endian")):
+        vertices = np.zeros(N, [("x", order + "f4"), ("y", order + "f8"), ("z", order + "f4"), ("red", "u1")])
+        vertices["x"], vertices["y"], vertices["z"] = POINTS.T
+        seeds.append(header(fmt, props=props, extra=faces) + vertices.tobytes() + triangles(2, 3).replace(b"<", b""))
+    return seeds
+
+
+_TOKENS = [b"list", b"uchar", b"int", b"double", b"-1", b"0", b"99999999999999999999", b"1e400", b"nan", b"x"]
+_TOKENS += [b"vertex", b"element", b"property", b"\n", b" ", b"\r\n", b"\x00", b"\xff", b"end_header", b"2"]
+
+
+def _mutate(data: bytes, rng: np.random.Generator) -> bytes:
+    """``data`` truncated, with bytes flipped, tokens inserted, header words replaced or bytes cut."""
+    out = bytearray(data)
+    for _ in range(int(rng.integers(1, 5))):
+        at = int(rng.integers(0, len(out) + 1))
+        kind = int(rng.integers(0, 5))
+        token = _TOKENS[int(rng.integers(0, len(_TOKENS)))]
+        if kind == 0:
+            del out[at:]
+        elif kind == 1 and out:
+            out[min(at, len(out) - 1)] = int(rng.integers(0, 256))
+        elif kind == 2:
+            out[at:at] = token
+        elif kind == 3:  # a word of the header
+            starts = [i + 1 for i in range(max(out.find(b"end_header"), 0)) if out[i] in b" \n"]
+            if starts:
+                start = starts[int(rng.integers(0, len(starts)))]
+                end = start
+                while end < len(out) and out[end] not in b" \n":
+                    end += 1
+                out[start:end] = token
+        else:
+            del out[at : at + int(rng.integers(1, 20))]
+    return bytes(out)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_any_truncation_or_mutation_raises_only_point_cloud_error(seed):
+    """Fuzzing (5,000 mutants per seed, about a second): the reader accepts a file or raises its own
+    typed error, never anything else (which the API would answer 500 and the command print as a traceback)."""
+    rng = np.random.default_rng(seed)
+    seeds = _seeds()
+    for seed_file in seeds:
+        assert read_points(seed_file, min_points=1).shape == (N, 3)
+    for _ in range(5000):
+        mutant = _mutate(seeds[int(rng.integers(0, len(seeds)))], rng)
+        try:
+            read_points(mutant, min_points=1)
+        except PointCloudError as error:
+            assert "\n" not in str(error) and str(error), mutant[:200]
+        except Exception as error:
+            pytest.fail(f"{type(error).__name__}: {error} on {mutant[:300]!r}")

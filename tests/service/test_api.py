@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -410,3 +411,102 @@ print("torch" in sys.modules)
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"
+
+
+def test_every_route_answers_503_within_a_second_while_redis_hangs_and_post_stores_nothing(tmp_path):
+    """Redis stopped with SIGSTOP (a hung server: connections open, nothing answers), then resumed."""
+    redis = RedisServer(tmp_path).start()
+    service = Service(redis.url, tmp_path)
+    try:
+        service.start_api()
+        job = service.submit(ply_binary(sphere(300)))["id"]
+        keys = service.keys()
+        assert redis.process is not None
+        redis.process.send_signal(signal.SIGSTOP)
+        cloud = {"points": ("s.ply", ply_binary(sphere(300)))}
+        with service.client() as client:
+            for method, path in [
+                ("GET", "/healthz"),
+                ("POST", "/v1/jobs"),
+                ("GET", f"/v1/jobs/{job}"),
+                ("DELETE", f"/v1/jobs/{job}"),
+                ("GET", f"/v1/jobs/{job}/mesh.obj"),
+                ("GET", f"/v1/jobs/{job}/mesh.glb"),
+                ("GET", f"/v1/jobs/{job}/events"),
+                ("GET", f"/v1/jobs/{job}"),  # again, on connections that timed out before
+                ("POST", "/v1/jobs"),
+            ]:
+                started = time.monotonic()
+                response = client.request(method, path, files=cloud if method == "POST" else None)
+                elapsed = time.monotonic() - started
+                assert response.status_code == 503, (method, path, response.text)
+                assert elapsed < 1.2, f"{method} {path}: {elapsed:.2f} s"
+            redis.process.send_signal(signal.SIGCONT)
+            wait_for(lambda: client.get("/healthz").status_code == 200, 10, 0.2, "the API to see Redis again")
+            time.sleep(0.5)  # anything a hung request left in Redis's buffers has been applied by now
+            assert service.keys() == keys  # the POSTs answered 503 stored nothing
+            assert client.get(f"/v1/jobs/{job}").json()["status"] == "queued"
+            assert service.submit(ply_binary(sphere(300)))["status"] == "queued"
+    finally:
+        if redis.process is not None:
+            redis.process.send_signal(signal.SIGCONT)
+        service.stop()
+        redis.stop()
+
+
+def _post_raw_form(url: str, parts: list[tuple[str, bytes, str | None]]) -> httpx.Response:
+    """POST a multipart form with exactly these parts (name, content, filename), repeats included."""
+    body = b""
+    for name, content, filename in parts:
+        disposition = f'form-data; name="{name}"' + (f'; filename="{filename}"' if filename else "")
+        body += f"--b\r\nContent-Disposition: {disposition}\r\n\r\n".encode() + content + b"\r\n"
+    body += b"--b--\r\n"
+    return httpx.post(url + "/v1/jobs", content=body, headers={"Content-Type": "multipart/form-data; boundary=b"})
+
+
+STRICT_FORMS = {
+    "empty value": ([("iterations", b"", None)], "iterations"),
+    "repeated field": ([("tau", b"10", None), ("tau", b"20", None)], "tau"),
+    "second points file": ([("points", ply_binary(sphere(300)), "t.ply")], "points"),
+}
+
+
+@pytest.mark.parametrize("name", STRICT_FORMS)
+def test_empty_and_repeated_fields_get_422_naming_the_field(api, nothing_stored, name):
+    parts, field = STRICT_FORMS[name]
+    response = _post_raw_form(api.url, [("points", ply_binary(sphere(300)), "s.ply"), *parts])
+    assert response.status_code == 422, response.text
+    problems = response.json()["detail"]
+    assert [problem["loc"] for problem in problems] == [["body", field]] and field in problems[0]["msg"]
+
+
+def test_list_typed_coordinates_get_400_with_one_line(api, nothing_stored):
+    for fmt in ("ascii", "binary_little_endian"):
+        header = f"ply\nformat {fmt} 1.0\nelement vertex 200\nproperty list uchar float x\nproperty float y\n"
+        content = (header + "property float z\nend_header\n").encode() + b"1 0.5 0.25 0.125\n" * 200
+        response = httpx.post(api.url + "/v1/jobs", files={"points": ("l.ply", content)})
+        assert response.status_code == 400, response.text
+        assert "list" in response.json()["detail"] and "\n" not in response.json()["detail"]
+
+
+def test_head_works_wherever_get_does_and_allow_lists_every_method(api):
+    job = api.submit(ply_binary(sphere(300)))["id"]
+    with api.client() as client:
+        for path in ("/healthz", f"/v1/jobs/{job}", "/openapi.json", "/metrics", "/"):
+            get, head = client.get(path), client.head(path)
+            assert head.status_code == get.status_code == 200, path
+            assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
+        assert client.head(f"/v1/jobs/{job}/mesh.obj").status_code == 409  # as GET answers
+        assert client.head("/v1/jobs/" + "A" * 22).status_code == 404
+        assert client.head("/static/page.css").status_code == 200
+        events = client.head(f"/v1/jobs/{job}/events")  # a stream: the headers, and no wait for the job
+        assert events.status_code == 200 and events.headers["content-type"].startswith("text/event-stream")
+        assert client.get("/healthz").status_code == 200  # the connection survives the cut stream
+        for method, path, allowed in [
+            ("PUT", f"/v1/jobs/{job}", "DELETE, GET, HEAD"),
+            ("POST", "/healthz", "GET, HEAD"),
+            ("GET", "/v1/jobs", "POST"),
+            ("HEAD", "/v1/jobs", "POST"),
+        ]:
+            response = client.request(method, path)
+            assert response.status_code == 405 and response.headers["allow"] == allowed, (method, path)

@@ -110,6 +110,9 @@ def _write(kind: str, folder: Path) -> Path:
         path.write_text("x y z\n0 0 0\n1 0 0\n")
     elif kind == "too_few":
         write_ply(path, read_points(EXAMPLE)[:20])
+    elif kind == "list_x":  # once a ValueError and a traceback
+        header = "ply\nformat ascii 1.0\nelement vertex 200\nproperty list uchar float x\nproperty float y\n"
+        path.write_bytes((header + "property float z\nend_header\n").encode() + b"1 0.5 0.25 0.125\n" * 200)
     return path
 
 
@@ -119,6 +122,7 @@ def _write(kind: str, folder: Path) -> Path:
         ("nan", [], 1, "NaN or infinite"),
         ("not_a_ply", [], 1, "not a PLY"),
         ("too_few", [], 1, "at least"),
+        ("list_x", [], 1, "list properties"),
         ("missing", [], 1, "No such file"),
         ("good", ["--iterations", "0"], 2, "--iterations"),
         ("good", ["--resolution", "8"], 2, "--resolution"),
