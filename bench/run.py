@@ -11,8 +11,10 @@ Quality: every (configuration, cloud) pair is fitted in a fresh process (so its 
 its own), then scored with evaluation.metrics against the ground truth in ../shared/data (see that
 folder's README). Configurations differ only in the loss: ``igr`` (no Laplacian term), ``lap``
 (the paper's quadratic Laplacian on every point), ``lap+des`` (the paper's method: quadratic,
-dynamic edge sampling), ``default`` (what edgerecon ships). All use the shipped schedule,
-network and free-space term, so the differences are the Laplacian's.
+dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults with the old
+marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
+All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
+samples against the true edges as ECD does the edge points; ``genus`` is the mesh's.
 
 Steps: one training step (``core.fit.step_loss``, backward, Adam) with and without the
 Laplacian term, alternated in one run so that the machine's load hits both; medians, the
@@ -37,6 +39,8 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -46,12 +50,18 @@ CONFIGS = {
     "lap": {"laplacian_penalty": "quadratic", "lambda2": 0.001, "tau": 20.0, "edge_sampling": False},
     "lap+des": {"laplacian_penalty": "quadratic", "lambda2": 0.001, "tau": 20.0, "edge_sampling": True},
     "default": {},
+    "mc": {"extraction": "mc"},
 }
 CLOUDS = [
     "cube",
     "box_hole",
     "l_bracket",
     "sphere",
+    "octagon_pocket",
+    "wedge",
+    "flange",
+    "featuretype",
+    "idler_riser",
     "box_hole/points_4096.ply",
     "box_hole/points_noise010.ply",
 ]
@@ -66,6 +76,8 @@ COLUMNS = [
     ("edge R", "edge_recall", "{:.2f}"),
     ("edge IoU", "edge_iou", "{:.2f}"),
     ("ECD", "ecd", "{:.4f}"),
+    ("curve ECD", "curve_ecd", "{:.4f}"),
+    ("genus", "genus", "{:.0f}"),
     ("false edges", "edge_false_share", "{:.2%}"),
     ("fit s", "fit_seconds", "{:.1f}"),
     ("extract s", "extract_seconds", "{:.1f}"),
@@ -136,6 +148,7 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     """Fit one cloud with one configuration in this process; its scores, times and peak memory."""
     from core.ply import read_points
     from core.reconstruct import reconstruct
+    from evaluation.metrics import edge_chamfer
     from evaluation.sample_data import evaluate_shape
 
     configure_core()
@@ -144,6 +157,12 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     points = read_points(data / shape / points_file)
     result = reconstruct(points, params_for(config, overrides))
     scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, data / shape, points_file=points_file)
+    scores["curve_ecd"] = float("nan")
+    true_edges = np.load(data / shape / "edges_gt.npy")
+    if result.curves and len(true_edges):
+        scores["curve_ecd"] = edge_chamfer(np.concatenate([curve.points for curve in result.curves]), true_edges)
+    mesh = result.mesh
+    scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
 

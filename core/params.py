@@ -59,7 +59,7 @@ class FitParams(BaseModel):
         description="sharp extraction: faces whose normals differ by more degrees meet at an edge curve",
     )
     edge_width: float = Field(
-        0.01,
+        0.013,
         gt=0,
         le=0.2,
         description="sharp extraction: input points this near an edge curve are edge points (normalised frame)",

@@ -8,6 +8,7 @@ wedge with a 50° ridge), with ∇f by central differences (exact to about 1e-9 
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 import pytest
@@ -25,7 +26,10 @@ ROTATION = trimesh.transformations.rotation_matrix(0.3, [1, 2, 3])[:3, :3]
 LOW, HIGH = np.full(3, -0.4), np.full(3, 0.4)
 
 
-def box(x: np.ndarray, half: np.ndarray = HALF, rotation: np.ndarray = np.eye(3), radius: float = 0.0) -> np.ndarray:
+IDENTITY = np.eye(3)
+
+
+def box(x: np.ndarray, half: np.ndarray = HALF, rotation: np.ndarray = IDENTITY, radius: float = 0.0) -> np.ndarray:
     """Signed distance to a box (rounded by ``radius``), turned by ``rotation``."""
     q = np.abs(x @ rotation) - (half - radius)
     return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0) - radius
@@ -53,7 +57,7 @@ def wedge(x: np.ndarray) -> np.ndarray:
 
 def wedge_mesh() -> trimesh.Trimesh:
     corners = []
-    for i, j, k in [(i, j, k) for i in range(5) for j in range(i + 1, 5) for k in range(j + 1, 5)]:
+    for i, j, k in itertools.combinations(range(5), 3):
         normals = np.array([WEDGE_PLANES[m][0] for m in (i, j, k)])
         if abs(np.linalg.det(normals)) > 1e-9:
             point = np.linalg.solve(normals, [WEDGE_PLANES[m][1] for m in (i, j, k)])
@@ -75,7 +79,7 @@ def contour(name: str, sharpen: bool = False) -> trimesh.Trimesh:
     return dual_contour(grid, f, lambda x: (f(x), gradient(f, x)), sharpen=sharpen)
 
 
-def box_mesh(rotation: np.ndarray = np.eye(3)) -> trimesh.Trimesh:
+def box_mesh(rotation: np.ndarray = IDENTITY) -> trimesh.Trimesh:
     mesh = trimesh.creation.box(2 * HALF)
     mesh.vertices = mesh.vertices @ rotation.T
     return mesh
@@ -192,3 +196,30 @@ def test_a_concave_edge_is_reported_as_concave():
     assert len(concave) == 1
     assert concave[0].length == pytest.approx(0.5, abs=0.02)
     assert concave[0].dihedral == pytest.approx(90, abs=2)
+
+
+def test_edges_json_lists_each_curve_in_order_with_its_angle_and_side():
+    import json
+
+    from core.reconstruct import Reconstruction
+
+    mesh = contour("box")
+    curves = edge_curves(mesh, 30.0, 0.02, 0.005)
+    points = mesh.vertices[:10]
+    result = Reconstruction(
+        mesh=mesh,
+        normals=np.zeros((10, 3)),
+        edge_indices=np.array([1, 2]),
+        edge_points=points[[1, 2]],
+        edge_laplacian=np.array([40.0, 50.0]),
+        tau=30.0,
+        points=points,
+        curves=curves,
+    )
+    edges = json.loads(result.edges_json())
+    assert set(edges) == {"tau", "count", "indices", "points", "laplacian", "curves"}
+    assert len(edges["curves"]) == 12 and result.summary()["edge_curves"] == 12
+    for written, curve in zip(edges["curves"], curves):
+        assert set(written) == {"points", "dihedral", "convex"}
+        np.testing.assert_allclose(written["points"], curve.points, atol=1e-6)
+        assert written["dihedral"] == pytest.approx(90, abs=3) and written["convex"] is True

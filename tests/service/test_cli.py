@@ -46,7 +46,7 @@ def moved_cloud(tmp_path_factory) -> Path:
 def fitted(moved_cloud, tmp_path_factory):
     """One successful run, shared by the checks of its three outputs."""
     parent = tmp_path_factory.mktemp("run")
-    result = run("fit", moved_cloud, "--out", parent / "out", "--tau", "2", *FAST, cwd=parent)
+    result = run("fit", moved_cloud, "--out", parent / "out", "--tau", "2", "--extraction", "mc", *FAST, cwd=parent)
     assert result.returncode == 0, result.stderr
     return parent, result
 
@@ -90,8 +90,8 @@ def test_normals_one_unit_vector_per_point_mostly_outward(fitted, moved_cloud):
 
 def test_edges_json_follows_the_design(fitted, moved_cloud):
     edges = json.loads((fitted[0] / "out" / "edges.json").read_text())
-    assert set(edges) == {"tau", "count", "indices", "points", "laplacian"}
-    assert edges["tau"] == 2.0
+    assert set(edges) == {"tau", "count", "indices", "points", "laplacian", "curves"}
+    assert edges["tau"] == 2.0 and edges["curves"] == []  # marching cubes: edges by |Δf| > tau, no curves
     points = read_points(moved_cloud)
     indices = np.array(edges["indices"], dtype=np.int64)
     assert 0 < edges["count"] == len(indices) == len(edges["points"]) == len(edges["laplacian"]) < len(points)
