@@ -190,6 +190,21 @@ def test_cancel_of_a_running_job_stops_its_worker_within_5_s(svc):
     assert httpx.get(f"{svc.url}/v1/jobs/{busy}/mesh.obj").status_code == 409
 
 
+def test_cancel_during_the_set_up_of_a_million_points_frees_the_worker_within_2_s(svc):
+    cloud = ply_binary(sphere(1_000_000))  # its neighbour queries alone take over 10 s
+    busy = svc.submit(cloud, **ENDLESS)["id"]
+    wait_for(lambda: (svc.job(busy)["progress"] or {}).get("stage") == "starting", 60, 0.05, "the set-up")
+    following = svc.submit(ply_binary(sphere(500)), **TINY)["id"]
+    time.sleep(1.0)  # well into the set-up
+    assert svc.job(busy)["progress"]["stage"] == "starting"
+    canceled_at = time.monotonic()
+    assert httpx.delete(f"{svc.url}/v1/jobs/{busy}").status_code == 204
+    svc.wait_status(following, {"running", "succeeded"}, timeout=10)
+    assert time.monotonic() - canceled_at < 2
+    svc.wait_status(following, {"succeeded"})
+    assert svc.job(busy)["status"] == "canceled"
+
+
 def test_cancel_during_extraction_stops_within_5_s(svc):
     cloud = ply_binary(sphere(500))
     busy = svc.submit(cloud, **SLOW_EXTRACTION)["id"]
