@@ -38,6 +38,8 @@ def serve(host: str, port: int, workers: int) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda number, frame: signals.append(number))
     env = dict(os.environ)
+    # One Settings for every child: each worker gets its share of the cores.
+    env["EDGERECON_WORKER_THREADS"] = str(get_settings().torch_threads(workers))
     api_command = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", host, "--port", str(port)]
     api_command += ["--no-access-log", "--timeout-graceful-shutdown", "5"]
     worker_command = [sys.executable, "-m", "service.cli", "worker"]

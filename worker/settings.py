@@ -9,6 +9,7 @@ environment.
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 
 from pydantic import AliasChoices, Field, SecretStr
@@ -52,7 +53,12 @@ class Settings(BaseSettings):
     key_prefix: str = Field("edgerecon", pattern=r"^[A-Za-z0-9_.-]+$", description="prefix of every job key")
 
     # The worker process.
-    worker_threads: int = Field(1, ge=1, le=256, description="torch threads per worker process")
+    worker_threads: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="torch threads per worker process; unset: the cores, shared among `edgerecon serve`'s workers",
+    )
     worker_nice: int = Field(
         10, ge=0, le=19, description="added niceness of worker processes, so fits yield the CPU to the API's requests"
     )
@@ -82,6 +88,14 @@ class Settings(BaseSettings):
     metrics_need_api_key: bool = Field(
         False, description="whether GET /metrics needs the API key (when one is set); off: scrapers need no secret"
     )
+
+    def torch_threads(self, workers: int = 1) -> int:
+        """Torch threads for each of ``workers`` worker processes on this machine: ``worker_threads``
+        if set, else the cores this process may use shared among them, so that a lone job on an idle
+        machine uses all of it and several workers do not oversubscribe it."""
+        if self.worker_threads is not None:
+            return self.worker_threads
+        return max(1, len(os.sched_getaffinity(0)) // max(1, workers))
 
 
 @lru_cache

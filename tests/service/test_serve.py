@@ -4,6 +4,8 @@ service, then Ctrl-C (SIGINT), after which no process of it may be left."""
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 import signal
 import subprocess
@@ -19,11 +21,13 @@ from tests.helpers import ENDLESS, ROOT, TEST_ENV, TINY, clean_environ, stop_pro
 from worker.redis_server import free_port
 
 
-def _serve(tmp_path, workers: int, **env) -> tuple[subprocess.Popen, str]:
+def _serve(tmp_path, workers: int, without: tuple[str, ...] = (), **env) -> tuple[subprocess.Popen, str]:
+    """Start ``edgerecon serve`` with the tests' settings (less ``without``) and ``env``; wait until it is ready."""
     port = free_port()
     command = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--workers", str(workers)]
-    log = open(tmp_path / "serve.log", "wb")
-    process = subprocess.Popen(command, env={**clean_environ(), **TEST_ENV, **env}, cwd=ROOT, stdout=log, stderr=log)
+    log = open(tmp_path / "serve.log", "ab")
+    environ = {name: value for name, value in {**clean_environ(), **TEST_ENV, **env}.items() if name not in without}
+    process = subprocess.Popen(command, env=environ, cwd=ROOT, stdout=log, stderr=log)
     url = f"http://127.0.0.1:{port}"
 
     def ready():
@@ -94,6 +98,18 @@ def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_s
         stop_process(process, signal.SIGKILL)
         for key in redis_server.client().keys("serve-test:*"):
             redis_server.client().delete(key)
+
+
+def test_serve_gives_its_lone_worker_every_core(tmp_path):
+    # (cores // N for each of N workers: tests/worker/test_settings.py)
+    process, _ = _serve(tmp_path, 1, without=("EDGERECON_WORKER_THREADS", "OMP_NUM_THREADS"))
+    try:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+    finally:
+        stop_process(process, signal.SIGKILL)
+    said = re.findall(r"torch ready: (\d+) thread", (tmp_path / "serve.log").read_text())
+    assert said == [str(len(os.sched_getaffinity(0)))]
 
 
 def test_worker_without_redis_url_says_so():

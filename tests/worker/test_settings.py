@@ -44,3 +44,11 @@ def test_a_bad_value_is_refused(monkeypatch):
     monkeypatch.setenv("EDGERECON_HEARTBEAT_TTL", "1")
     with pytest.raises(ValidationError, match="heartbeat_ttl"):
         Settings()
+
+
+def test_torch_threads_default_to_the_cores_shared_among_the_workers(monkeypatch):
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(8)))
+    assert Settings().torch_threads() == 8
+    assert [Settings().torch_threads(workers) for workers in (2, 3, 8, 16)] == [4, 2, 1, 1]
+    monkeypatch.setenv("EDGERECON_WORKER_THREADS", "3")
+    assert Settings().torch_threads() == Settings().torch_threads(4) == 3
