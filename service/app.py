@@ -84,6 +84,9 @@ class JobView(BaseModel):
     result: dict[str, Any] | None = Field(
         description="vertex and face counts, edge point count, timings (succeeded jobs)"
     )
+    attempts: int = Field(
+        description="how many times a worker started the job (one whose worker died or was shut down runs again)"
+    )
     links: dict[str, str] = Field(description="this job, and its outputs once it has succeeded")
 
     @classmethod
@@ -250,12 +253,12 @@ def healthz(registry: Registry) -> Health | JSONResponse:
 
 
 async def _sweep_orphans(store: JobStore, interval: float) -> None:
-    """Fail, every ``interval`` seconds, the running jobs whose worker stopped signalling."""
+    """Requeue (or fail), every ``interval`` seconds, the running jobs whose worker stopped signalling."""
     while True:
         await asyncio.sleep(interval)
         try:
-            for job_id in await asyncio.to_thread(store.fail_orphans):
-                log.warning("job %s failed: its worker stopped signalling", job_id)
+            for job_id, status in (await asyncio.to_thread(store.recover_orphans)).items():
+                log.warning("job %s %s: its worker stopped signalling", job_id, status)
         except RedisError as error:
             log.debug("orphan sweep skipped: %s", error)
 

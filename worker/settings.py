@@ -41,7 +41,13 @@ class Settings(BaseSettings):
     )
     job_timeout: int = Field(3600, ge=1, description="seconds a job may run before the worker stops it (failed)")
     heartbeat_ttl: int = Field(
-        30, ge=2, description="a running job whose worker has not signalled for this many seconds is failed"
+        30, ge=2, description="a running job whose worker has not signalled for this many seconds is requeued or failed"
+    )
+    max_attempts: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="times a job may start: one whose worker dies or is shut down runs again until then, then fails",
     )
     sweep_interval: float = Field(10.0, gt=0, description="seconds between the API's checks for jobs of dead workers")
     progress_interval: float = Field(
