@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from functools import lru_cache
+from pathlib import Path
 
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -27,6 +28,18 @@ class Settings(BaseSettings):
         description="redis://host:port/db or unix:///path; unset: `edgerecon serve` starts its own Redis",
     )
     api_key: SecretStr | None = Field(None, description="when set, every /v1 route needs 'Authorization: Bearer <key>'")
+
+    # `edgerecon serve`'s own Redis (when REDIS_URL is unset).
+    data_dir: Path | None = Field(
+        None,
+        description="folder of the embedded Redis's data (append-only file); unset: $XDG_DATA_HOME/edgerecon,"
+        " else ~/.local/share/edgerecon",
+    )
+    redis_maxmemory: int = Field(
+        1024**3,
+        ge=0,
+        description="memory limit of the embedded Redis in bytes (0: none); when it is nearly full, new jobs get 507",
+    )
 
     # Limits on what a user may send.
     max_upload_bytes: int = Field(
@@ -94,6 +107,14 @@ class Settings(BaseSettings):
     metrics_need_api_key: bool = Field(
         False, description="whether GET /metrics needs the API key (when one is set); off: scrapers need no secret"
     )
+
+    def data_path(self) -> Path:
+        """Where the embedded Redis keeps its data: ``data_dir``, or the user's data folder (XDG),
+        never a temporary one, so that jobs outlive a restart."""
+        if self.data_dir is not None:
+            return self.data_dir
+        xdg = os.environ.get("XDG_DATA_HOME")
+        return (Path(xdg) if xdg else Path.home() / ".local" / "share") / "edgerecon"
 
     def torch_threads(self, workers: int = 1) -> int:
         """Torch threads for each of ``workers`` worker processes on this machine: ``worker_threads``

@@ -26,7 +26,11 @@ def _serve(tmp_path, workers: int, without: tuple[str, ...] = (), **env) -> tupl
     port = free_port()
     command = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--workers", str(workers)]
     log = open(tmp_path / "serve.log", "ab")
-    environ = {name: value for name, value in {**clean_environ(), **TEST_ENV, **env}.items() if name not in without}
+    # Its data in the test's folder (not the user's), and its temporary files where they can be counted.
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    private = {"EDGERECON_DATA_DIR": str(tmp_path / "data"), "TMPDIR": str(tmp_path / "tmp")}
+    environ = {**clean_environ(), **TEST_ENV, **private, **env}
+    environ = {name: value for name, value in environ.items() if name not in without}
     process = subprocess.Popen(command, env=environ, cwd=ROOT, stdout=log, stderr=log)
     url = f"http://127.0.0.1:{port}"
 
@@ -73,6 +77,70 @@ def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, ex
         assert process.wait(timeout=30) == 0
         assert time.monotonic() - started < 15
         assert [child.pid for child in family if child.is_running() and child.status() != psutil.STATUS_ZOMBIE] == []
+    finally:
+        stop_process(process, signal.SIGKILL)
+
+
+def _job(url: str, job_id: str) -> dict:
+    response = httpx.get(f"{url}/v1/jobs/{job_id}", timeout=10)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def _submit(url: str, cloud: bytes, params: dict) -> str:
+    data = {name: str(value) for name, value in params.items()}
+    response = httpx.post(f"{url}/v1/jobs", files={"points": ("cloud.ply", cloud)}, data=data, timeout=30)
+    assert response.status_code == 202, response.text
+    return response.json()["id"]
+
+
+def _alive(processes: list[psutil.Process]) -> list[int]:
+    return [child.pid for child in processes if child.is_running() and child.status() != psutil.STATUS_ZOMBIE]
+
+
+def test_serve_keeps_every_job_across_a_sigkill_and_brings_its_redis_back_within_5_s(tmp_path, example_cloud):
+    process, url = _serve(tmp_path, workers=1)
+    try:
+        done = _submit(url, example_cloud, TINY)
+        wait_for(lambda: _job(url, done)["status"] == "succeeded", 60, 0.2, "the first job")
+        mesh = httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content
+        busy = _submit(url, example_cloud, {**ENDLESS, "iterations": 300})
+        waiting = _submit(url, example_cloud, TINY)  # queued behind it
+        wait_for(lambda: (_job(url, busy)["progress"] or {}).get("stage") == "fitting", 60, 0.1, "the busy job")
+        family = psutil.Process(process.pid).children(recursive=True)
+        process.kill()  # no clean-up by serve itself: its children stop on their own (PDEATHSIG)
+        process.wait()
+        wait_for(lambda: _alive(family) == [], 20, 0.1, "the children of the killed serve to stop")
+        # Nothing left in temporary folders, but torch's compile cache (kept on purpose, shared by runs).
+        assert [path.name for path in (tmp_path / "tmp").iterdir() if not path.name.startswith("torchinductor")] == []
+        assert any((tmp_path / "data").rglob("*.aof"))  # the data is in the data folder
+    finally:
+        stop_process(process, signal.SIGKILL)
+
+    started = time.monotonic()
+    process, url = _serve(tmp_path, workers=1)  # the same data folder
+    try:
+        assert time.monotonic() - started < 30
+        assert _job(url, done)["status"] == "succeeded"
+        assert httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content == mesh
+        for job_id in (busy, waiting):  # the running job runs again, the queued one runs
+            wait_for(lambda job_id=job_id: _job(url, job_id)["status"] == "succeeded", 120, 0.2, "the jobs to run")
+        assert _job(url, busy)["attempts"] == 2 and _job(url, waiting)["attempts"] == 1
+
+        # The embedded Redis dies: the API answers 503 meanwhile, and serve brings it back with its data.
+        redis = next(c for c in psutil.Process(process.pid).children() if "redis-server" in " ".join(c.cmdline()))
+        redis.kill()
+        killed_at, answers = time.monotonic(), []
+        while time.monotonic() - killed_at < 15:
+            answers.append(httpx.get(f"{url}/v1/jobs/{done}", timeout=5).status_code)
+            if answers[-1] == 200 and 503 in answers:
+                break
+            time.sleep(0.05)
+        assert set(answers) == {503, 200} and answers[-1] == 200, answers
+        assert time.monotonic() - killed_at < 5
+        assert httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content == mesh
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
     finally:
         stop_process(process, signal.SIGKILL)
 

@@ -52,3 +52,14 @@ def test_torch_threads_default_to_the_cores_shared_among_the_workers(monkeypatch
     assert [Settings().torch_threads(workers) for workers in (2, 3, 8, 16)] == [4, 2, 1, 1]
     monkeypatch.setenv("EDGERECON_WORKER_THREADS", "3")
     assert Settings().torch_threads() == Settings().torch_threads(4) == 3
+
+
+def test_the_embedded_redis_keeps_its_data_in_the_users_data_folder_never_a_temporary_one(monkeypatch, tmp_path):
+    monkeypatch.delenv("XDG_DATA_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert Settings().data_path() == tmp_path / ".local" / "share" / "edgerecon"
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    assert Settings().data_path() == tmp_path / "xdg" / "edgerecon"
+    monkeypatch.setenv("EDGERECON_DATA_DIR", str(tmp_path / "mine"))
+    assert Settings().data_path() == tmp_path / "mine"
+    assert Settings().redis_maxmemory == 1024**3
