@@ -47,6 +47,7 @@ from service.middleware import RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
 from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
+from worker.errors import StoreFull
 from worker.registry import WorkerRegistry
 from worker.settings import Settings, get_settings
 from worker.store import JobStore
@@ -152,7 +153,11 @@ def _not_found(job_id: str) -> HTTPException:
     "/jobs",
     status_code=202,
     response_model=JobView,
-    responses={400: {"model": ErrorBody, "description": "not a usable point cloud"}, 413: {"model": ErrorBody}},
+    responses={
+        400: {"model": ErrorBody, "description": "not a usable point cloud"},
+        413: {"model": ErrorBody},
+        507: {"model": ErrorBody, "description": "the job store is full: try again later"},
+    },
 )
 def submit_job(
     form: Annotated[JobForm, Form(media_type="multipart/form-data")],
@@ -167,7 +172,10 @@ def submit_job(
         raise HTTPException(400, f"points: {error}") from None
     params = FitParams(**form.model_dump(exclude={"points"}))
     job_id = new_job_id()
-    store.create(job_id, points, params)
+    try:
+        store.create(job_id, points, params)
+    except StoreFull as error:
+        raise HTTPException(507, str(error)) from None
     log.info("job %s queued: %d points, %s", job_id, len(points), params.model_dump())
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     record = store.get(job_id)

@@ -52,7 +52,7 @@ from typing import Any, cast
 import numpy as np
 from redis import Redis
 from redis.asyncio import Redis as AsyncRedis
-from redis.exceptions import RedisError
+from redis.exceptions import OutOfMemoryError, RedisError, ResponseError
 from rq import Queue
 from rq.exceptions import NoSuchJobError
 from rq.job import Job
@@ -61,7 +61,7 @@ from rq.serializers import JSONSerializer
 from core.params import FitParams
 from worker.connection import text
 from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobRecord, JobStatus, Progress, Stage, is_job_id
-from worker.errors import InputExpired, InvalidJobId
+from worker.errors import InputExpired, InvalidJobId, StoreFull
 from worker.settings import Settings
 
 log = logging.getLogger("edgerecon.store")
@@ -114,6 +114,10 @@ redis.call('PUBLISH', KEYS[1] .. ':changes', new)
 return {status, 1}
 """
 
+
+# New jobs are refused once Redis's memory in use would pass this share of its maxmemory: the rest
+# is for the outputs of the jobs that run (noeviction: a write past maxmemory fails).
+NEW_JOB_MEMORY_SHARE = 0.9
 
 # Upper bounds (seconds) of the buckets of the stage-duration histograms; changing them restarts the histograms.
 DURATION_BUCKETS = (0.5, 1, 2.5, 5, 10, 25, 50, 100, 250, 500, 1000, 2500, 5000)
@@ -214,9 +218,13 @@ class JobStore:
     # --- the API's side ----------------------------------------------------------------------------
 
     def create(self, job_id: str, points: np.ndarray, params: FitParams) -> None:
-        """Store the input and the record of a new job and enqueue it, all in one transaction."""
+        """Store the input and the record of a new job and enqueue it, all in one transaction;
+        ``StoreFull`` (and nothing stored) when Redis has no room for it."""
         buffer = io.BytesIO()
         np.save(buffer, points, allow_pickle=False)
+        # Level 1: five times faster than 6 on coordinates, for a tenth more bytes; read only once.
+        blob = _pack(buffer.getvalue(), level=1)
+        self._check_room(len(blob))
         record: dict[Any, Any] = {  # typed as redis-py's hset wants it
             "status": JobStatus.QUEUED.value,
             "params": params.model_dump_json(),
@@ -225,13 +233,33 @@ class JobStore:
         }
         with self.redis.pipeline() as pipe:
             pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
-            # Level 1: five times faster than 6 on coordinates, for a tenth more bytes; read only once.
-            pipe.set(self._key(job_id, "points"), _pack(buffer.getvalue(), level=1), ex=self.ttl)
+            pipe.set(self._key(job_id, "points"), blob, ex=self.ttl)
             pipe.hset(self._key(job_id), mapping=record)
             pipe.expire(self._key(job_id), self.ttl)
             pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
             self._enqueue(job_id, job_id, pipe)
-            pipe.execute()
+            try:
+                pipe.execute()
+            except OutOfMemoryError:  # full since the check: the transaction was refused whole
+                raise StoreFull(self._full_message()) from None
+
+    def _check_room(self, size: int) -> None:
+        """Raise ``StoreFull`` unless ``size`` more bytes keep Redis under ``NEW_JOB_MEMORY_SHARE`` of its maxmemory."""
+        try:
+            memory = self.redis.info("memory")
+        except ResponseError:  # INFO disabled (some managed Redis): Redis's own refusal still applies
+            return
+        limit, used = int(memory.get("maxmemory", 0)), int(memory.get("used_memory", 0))
+        if limit and used + size > NEW_JOB_MEMORY_SHARE * limit:
+            raise StoreFull(self._full_message(used, limit))
+
+    @staticmethod
+    def _full_message(used: int = 0, limit: int = 0) -> str:
+        state = f" ({used / 2**20:.0f} of {limit / 2**20:.0f} MiB in use)" if limit else ""
+        return (
+            f"the job store (Redis) is full{state}: no new job is accepted until running jobs end and old"
+            " ones expire; jobs already submitted, their status and their results are unaffected. Try again later"
+        )
 
     def _enqueue(self, rq_id: str, job_id: str, pipe: Any) -> None:
         """Queue an rq job ``rq_id`` that runs job ``job_id``, in the transaction ``pipe``."""
