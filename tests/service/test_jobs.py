@@ -333,7 +333,8 @@ def test_results_expire_together_with_their_artifacts(pair):
     job = pair.wait_status(job_id, {"succeeded"})
     for name in ("mesh.obj", "normals.json", "edges.json"):
         assert httpx.get(pair.url + job["links"][name]).status_code == 200
-    parts = ("", ":points", ":mesh.obj", ":normals.json", ":edges.json")
+    assert not pair.redis.exists(f"{pair.prefix}:job:{job_id}:points")  # the input went when the job ended
+    parts = ("", ":mesh.obj", ":normals.json", ":edges.json")
     keys = [f"{pair.prefix}:job:{job_id}{part}" for part in parts]
     ttls = [pair.redis.ttl(key) for key in keys]
     assert all(0 < ttl <= 30 for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls
