@@ -13,7 +13,7 @@ from core.losses import eikonal_loss, free_space_loss, laplacian_loss, vanish_lo
 from core.network import ImplicitNetwork
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
-from core.sampling import FreeSpace, draw_batch, local_scales
+from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances
 
 
 def fit(
@@ -26,14 +26,21 @@ def fit(
 
     Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``),
     computes ``step_loss`` and takes one Adam step, with the learning rate decaying geometrically.
-    ``should_cancel`` is polled every step; when it returns True, ``Cancelled`` is raised.
+    ``should_cancel`` is polled every step, and often during the set-up before the first (the
+    neighbour queries and the free-space map take a minute at 5 M points); when it returns True,
+    ``Cancelled`` is raised.
     """
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
         model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
     cloud = torch.as_tensor(points, dtype=torch.float32)
-    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
-    free_space = FreeSpace(points) if params.lambda3 > 0 else None
+    # One tree and one pass of neighbour queries serve the local scales and the free-space map.
+    tree = build_tree(points, should_cancel)
+    distances = neighbour_distances(tree, points, [1, 4, min(50, len(points) - 1)], should_cancel)
+    scales = torch.as_tensor(distances[:, 2], dtype=torch.float32)
+    free_space = None
+    if params.lambda3 > 0:
+        free_space = FreeSpace(points, tree=tree, spacing=distances[:, :2], should_cancel=should_cancel)
     matmul_dtype = matmul_dtype_for(params.precision)
     batch_size = min(params.batch_points, len(cloud))
 

@@ -49,6 +49,7 @@ from service.middleware import HttpMethods, RequestGuard
 from service.page import router as page_router
 from worker.connection import connect, connect_async
 from worker.contract import OUTPUT_NAMES, JobRecord, JobStatus, Progress, is_job_id, new_job_id
+from worker.errors import StoreFull
 from worker.registry import WorkerRegistry
 from worker.settings import Settings, get_settings
 from worker.store import JobStore
@@ -85,6 +86,9 @@ class JobView(BaseModel):
     error: str | None = Field(description="why the job failed")
     result: dict[str, Any] | None = Field(
         description="vertex and face counts, edge point count, timings (succeeded jobs)"
+    )
+    attempts: int = Field(
+        description="how many times a worker started the job (one whose worker died or was shut down runs again)"
     )
     links: dict[str, str] = Field(description="this job, and its outputs once it has succeeded")
 
@@ -189,6 +193,7 @@ async def _strict_form(request: Request) -> None:
         408: {"model": ErrorBody, "description": "the upload stalled"},
         413: {"model": ErrorBody},
         503: {"model": ErrorBody, "description": "too many uploads at once, or Redis is unavailable: retry"},
+        507: {"model": ErrorBody, "description": "the job store is full: try again later"},
     },
 )
 def submit_job(
@@ -209,7 +214,10 @@ def submit_job(
             raise HTTPException(400, f"points: {error}") from None
         params = FitParams(**form.model_dump(exclude={"points"}))
         job_id = new_job_id()
-        store.create(job_id, points, params)
+        try:
+            store.create(job_id, points, params)
+        except StoreFull as error:
+            raise HTTPException(507, str(error)) from None
     log.info("job %s queued: %d points, %s", job_id, len(points), params.model_dump())
     response.headers["Location"] = f"/v1/jobs/{job_id}"
     record = store.get(job_id)
@@ -295,12 +303,12 @@ def healthz(registry: Registry) -> Health | JSONResponse:
 
 
 async def _sweep_orphans(store: JobStore, interval: float) -> None:
-    """Fail, every ``interval`` seconds, the running jobs whose worker stopped signalling."""
+    """Requeue (or fail), every ``interval`` seconds, the running jobs whose worker stopped signalling."""
     while True:
         await asyncio.sleep(interval)
         try:
-            for job_id in await asyncio.to_thread(store.fail_orphans):
-                log.warning("job %s failed: its worker stopped signalling", job_id)
+            for job_id, status in (await asyncio.to_thread(store.recover_orphans)).items():
+                log.warning("job %s %s: its worker stopped signalling", job_id, status)
         except RedisError as error:
             log.debug("orphan sweep skipped: %s", error)
 

@@ -41,7 +41,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     serve_parser.add_argument("--host", default="127.0.0.1", help="address the API listens on (default 127.0.0.1)")
     serve_parser.add_argument("--port", type=int, default=8000, help="port the API listens on (default 8000)")
-    serve_parser.add_argument("--workers", type=int, default=1, help="worker processes to start (default 1)")
+    serve_parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="worker processes to start (default 1, on every core; N: cores // N each)",
+    )
+    serve_parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="folder of the embedded Redis's data, kept across restarts (default EDGERECON_DATA_DIR, "
+        "else $XDG_DATA_HOME/edgerecon or ~/.local/share/edgerecon)",
+    )
     commands.add_parser("worker", help="start one more worker against REDIS_URL")
     args = parser.parse_args(argv)
     if args.command == "fit":
@@ -49,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "serve":
         from service.serve import serve
 
-        return serve(args.host, args.port, args.workers)
+        return serve(args.host, args.port, args.workers, args.data_dir)
     if args.command == "worker":
         from worker.process import main as run_worker
 

@@ -116,7 +116,16 @@ def _job_families(stats: StoreStats, workers: int) -> list[Metric]:
         durations.add_metric([stage], buckets, sum_value=histogram.sum)
     return [
         CounterMetricFamily("edgerecon_jobs_submitted", "jobs submitted", value=entered.get("queued", 0)),
-        CounterMetricFamily("edgerecon_jobs_started", "jobs a worker started", value=entered.get("running", 0)),
+        CounterMetricFamily(
+            "edgerecon_jobs_started",
+            "starts of jobs by workers (a job run again counts again)",
+            value=entered.get("running", 0),
+        ),
+        CounterMetricFamily(
+            "edgerecon_jobs_requeued",
+            "jobs put back in the queue because their worker died or was shut down",
+            value=entered.get("requeued", 0),
+        ),
         finished,
         GaugeMetricFamily("edgerecon_jobs_queued", "jobs waiting for a worker", value=stats.queued),
         GaugeMetricFamily("edgerecon_jobs_running", "jobs running", value=stats.running),

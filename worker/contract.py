@@ -59,9 +59,10 @@ class JobStatus(StrEnum):
     CANCELED = "canceled"
 
 
-# Why a job failed when the reason is the service's, not the input's (a job's ``error``).
-ORPHANED = "the worker running this job stopped unexpectedly (crashed or was killed); submit the job again"
-SHUTDOWN = "the worker was shut down while running this job; submit the job again"
+# Why a job's run was cut short when the reason is the service's, not the input's: the job goes back
+# to the queue, or when it has no attempt left fails with this (and the count) as its ``error``.
+ORPHANED = "the worker running this job stopped unexpectedly (crashed or was killed)"
+SHUTDOWN = "the worker was shut down while running this job"
 
 
 class JobRecord(BaseModel):
@@ -81,3 +82,8 @@ class JobRecord(BaseModel):
         None, description="vertex and face counts, edge point count, timings (succeeded jobs)"
     )
     worker: str | None = Field(None, description="the worker that took the job")
+    attempts: int = Field(
+        0,
+        description="how many times a worker started the job: one whose worker died or was shut down runs again,"
+        " up to EDGERECON_MAX_ATTEMPTS times",
+    )

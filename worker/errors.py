@@ -7,6 +7,11 @@ class InvalidJobId(ValueError):
     """A string that is not a job id was about to become a Redis key."""
 
 
+class StoreFull(Exception):
+    """Redis is (nearly) at its ``maxmemory``: a new job is refused, so that the running ones can
+    still store their results."""
+
+
 class InputExpired(Exception):
     """The job's input cloud is no longer in Redis (it expired before a worker took the job)."""
 

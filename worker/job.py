@@ -68,42 +68,45 @@ class JobRunner:
         """Run job ``job_id`` on ``worker`` if it is still queued; ``timeout`` is its time limit, for the message."""
         self.running_job = job_id
         try:
-            params = self.store.start(job_id, worker)
-            if params is None:
-                log.info("job %s is no longer queued (canceled or expired): not run", job_id)
+            started = self.store.start(job_id, worker)
+            if started is None:
+                log.info("job %s is no longer queued (canceled, taken or expired): not run", job_id)
                 return
-            self._reconstruct(job_id, params, timeout)
+            params, attempt = started
+            self._reconstruct(job_id, params, attempt, timeout)
         finally:
             self.running_job = None
 
-    def _reconstruct(self, job_id: str, params: FitParams, timeout: int | None) -> None:
+    def _reconstruct(self, job_id: str, params: FitParams, attempt: int, timeout: int | None) -> None:
+        """Run the ``attempt``-th run of the job; every write names the attempt, so that a run the
+        service has given up on (its heartbeat lapsed, the job runs again elsewhere) changes nothing."""
         from core.reconstruct import reconstruct  # torch: only ever imported in worker processes
 
         store = self.store
-        control = _JobControl(store, job_id, self.settings.progress_interval, self.shutdown)
+        control = _JobControl(store, job_id, attempt, self.settings.progress_interval, self.shutdown)
         try:
             points = store.load_points(job_id)
             result = reconstruct(points, params, progress=control.progress, should_cancel=control.should_cancel)
             summary = result.summary()
-            if store.succeed(job_id, result.outputs(), summary):
+            if store.succeed(job_id, result.outputs(), summary, attempt):
                 log.info("job %s succeeded: %s", job_id, summary)
                 store.observe_durations(
                     {"fitting": result.timings["fit_seconds"], "extracting": result.timings["extract_seconds"]}
                 )
         except Cancelled:
-            if self.shutdown.is_set():
-                store.fail(job_id, SHUTDOWN)
+            if self.shutdown.is_set():  # the job is not at fault: another worker runs it (attempts allowing)
+                store.release(job_id, SHUTDOWN, attempt)
             log.info("job %s stopped: %s", job_id, "worker shutting down" if self.shutdown.is_set() else "canceled")
         except (EdgereconError, InputExpired) as error:  # the user's input: no surface, input expired...
-            store.fail(job_id, str(error))
+            store.fail(job_id, str(error), attempt)
         except JobTimeoutException:
-            store.fail(job_id, f"the job ran longer than its time limit of {timeout} s")
+            store.fail(job_id, f"the job ran longer than its time limit of {timeout} s", attempt)
             raise
         except (KeyboardInterrupt, SystemExit):  # the worker's cold shutdown
-            store.fail(job_id, SHUTDOWN)
+            store.release(job_id, SHUTDOWN, attempt)
             raise
         except BaseException as error:  # a bug or the machine (MemoryError...): keep the traceback in rq
-            store.fail(job_id, f"the reconstruction failed: {type(error).__name__}: {error}")
+            store.fail(job_id, f"the reconstruction failed: {type(error).__name__}: {error}", attempt)
             raise
 
 
@@ -117,8 +120,8 @@ class _JobControl:
     worker's shutdown stops the job within about one interval, whatever stage it is in.
     """
 
-    def __init__(self, store: JobStore, job_id: str, interval: float, shutdown: threading.Event):
-        self.store, self.job_id, self.interval, self.shutdown = store, job_id, interval, shutdown
+    def __init__(self, store: JobStore, job_id: str, attempt: int, interval: float, shutdown: threading.Event):
+        self.store, self.job_id, self.attempt, self.interval, self.shutdown = store, job_id, attempt, interval, shutdown
         self.last_write = -math.inf
         self.last_check = time.monotonic()
         self.losses: dict[str, float | None] | None = None
@@ -133,7 +136,7 @@ class _JobControl:
         if update.losses:  # extraction reports none: keep showing the last ones
             self.losses = {name: _finite(value) for name, value in update.losses.items()}
         report = update.model_copy(update={"losses": self.losses, "edge_share": _finite(update.edge_share)})
-        if not self.store.set_progress(self.job_id, report):
+        if not self.store.set_progress(self.job_id, report, self.attempt):
             self.stopped = True
 
     def should_cancel(self) -> bool:
@@ -143,7 +146,7 @@ class _JobControl:
         if now - self.last_check >= self.interval:
             self.last_check = now
             try:
-                self.stopped = not self.store.is_running(self.job_id)
+                self.stopped = not self.store.is_running(self.job_id, self.attempt)
             except RedisError as error:  # Redis unreachable: keep working, check again later
                 log.warning("job %s: status check failed: %s", self.job_id, error)
         return self.stopped

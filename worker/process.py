@@ -15,9 +15,11 @@ gave for free is rebuilt on the job's record (``worker.store``):
 - shutdown: the first SIGINT/SIGTERM stops the running job at its next step (it fails with "the
   worker was shut down"), then the worker exits; a second signal exits at once (rq's cold shutdown).
 
-Scale by running more worker processes: one per core with ``EDGERECON_WORKER_THREADS=1``, or fewer
-with more torch threads each. Workers lower their CPU priority (``EDGERECON_WORKER_NICE``, +10 by
-default) so that on shared cores the API's status polls stay fast while fits run.
+A worker uses ``Settings.torch_threads()`` torch threads: ``EDGERECON_WORKER_THREADS``, or by default
+every core (``edgerecon serve --workers N`` sets cores // N for each). Scale by running more worker
+processes: one per core with ``EDGERECON_WORKER_THREADS=1``, or fewer with more threads each.
+Workers lower their CPU priority (``EDGERECON_WORKER_NICE``, +10 by default) so that on shared
+cores the API's status polls stay fast while fits run.
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ def prepare_torch(settings: Settings) -> None:
     """Import torch and core once, configure them, and (optionally) compile on a tiny fit."""
     from core.runtime import configure
 
-    configure(compile=settings.compile, threads=settings.worker_threads)
+    configure(compile=settings.compile, threads=settings.torch_threads())
     import torch
 
     from core.errors import EdgereconError

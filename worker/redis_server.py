@@ -2,8 +2,9 @@
 is needed. ``edgerecon serve`` runs one when ``REDIS_URL`` is unset, the tests and the service
 benchmark run one per session.
 
-The server keeps nothing on disk (jobs are transient) and refuses writes when full rather than
-evicting the keys of live jobs.
+``persistent`` servers (``edgerecon serve``'s) keep an append-only file in their folder, written
+every second, so that a restart finds every job; the tests' servers keep nothing. Either refuses
+writes when full (``maxmemory``, noeviction) rather than evicting the keys of live jobs.
 """
 
 from __future__ import annotations
@@ -31,10 +32,20 @@ def free_port() -> int:
 class RedisServer:
     """A redis-server with its data folder in ``directory``, on a unix socket there
     (``unix_socket=True``, private to this user) or on 127.0.0.1 at ``port`` (default: a free one).
-    ``start`` again after ``stop`` restarts it at the same address, empty."""
+    ``start`` again after ``stop`` restarts it at the same address, with its data if ``persistent``
+    (the append-only file, fsynced every second), else empty. ``maxmemory`` bytes (0: no limit)."""
 
-    def __init__(self, directory: Path, *, unix_socket: bool = False, port: int | None = None):
+    def __init__(
+        self,
+        directory: Path,
+        *,
+        unix_socket: bool = False,
+        port: int | None = None,
+        persistent: bool = False,
+        maxmemory: int = 0,
+    ):
         self.directory = Path(directory)
+        self.persistent, self.maxmemory = persistent, maxmemory
         self.socket = self.directory / "redis.sock" if unix_socket else None
         self.port = 0 if unix_socket else port or free_port()
         self.url = f"unix://{self.socket}" if self.socket else f"redis://127.0.0.1:{self.port}/0"
@@ -48,8 +59,13 @@ class RedisServer:
             command += ["--unixsocket", str(self.socket), "--unixsocketperm", "700"]
         else:
             command += ["--bind", "127.0.0.1"]
-        command += ["--dir", str(self.directory), "--save", "", "--appendonly", "no"]
-        return command + ["--maxmemory-policy", "noeviction", "--loglevel", "warning"]
+        command += ["--dir", str(self.directory), "--save", ""]
+        if self.persistent:
+            command += ["--appendonly", "yes", "--appendfsync", "everysec", "--aof-load-truncated", "yes"]
+        else:
+            command += ["--appendonly", "no"]
+        command += ["--maxmemory", str(self.maxmemory), "--maxmemory-policy", "noeviction"]
+        return command + ["--loglevel", "warning"]
 
     def start(self, spawn: Spawn | None = None, timeout: float = 10) -> RedisServer:
         """Start the server (with ``spawn``, default a plain child process) and wait until it answers."""

@@ -9,7 +9,9 @@ environment.
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
+from pathlib import Path
 
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -26,6 +28,18 @@ class Settings(BaseSettings):
         description="redis://host:port/db or unix:///path; unset: `edgerecon serve` starts its own Redis",
     )
     api_key: SecretStr | None = Field(None, description="when set, every /v1 route needs 'Authorization: Bearer <key>'")
+
+    # `edgerecon serve`'s own Redis (when REDIS_URL is unset).
+    data_dir: Path | None = Field(
+        None,
+        description="folder of the embedded Redis's data (append-only file); unset: $XDG_DATA_HOME/edgerecon,"
+        " else ~/.local/share/edgerecon",
+    )
+    redis_maxmemory: int = Field(
+        1024**3,
+        ge=0,
+        description="memory limit of the embedded Redis in bytes (0: none); when it is nearly full, new jobs get 507",
+    )
 
     # Limits on what a user may send.
     max_upload_bytes: int = Field(
@@ -57,7 +71,13 @@ class Settings(BaseSettings):
     )
     job_timeout: int = Field(3600, ge=1, description="seconds a job may run before the worker stops it (failed)")
     heartbeat_ttl: int = Field(
-        30, ge=2, description="a running job whose worker has not signalled for this many seconds is failed"
+        30, ge=2, description="a running job whose worker has not signalled for this many seconds is requeued or failed"
+    )
+    max_attempts: int = Field(
+        2,
+        ge=1,
+        le=100,
+        description="times a job may start: one whose worker dies or is shut down runs again until then, then fails",
     )
     sweep_interval: float = Field(10.0, gt=0, description="seconds between the API's checks for jobs of dead workers")
     progress_interval: float = Field(
@@ -69,7 +89,12 @@ class Settings(BaseSettings):
     key_prefix: str = Field("edgerecon", pattern=r"^[A-Za-z0-9_.-]+$", description="prefix of every job key")
 
     # The worker process.
-    worker_threads: int = Field(1, ge=1, le=256, description="torch threads per worker process")
+    worker_threads: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="torch threads per worker process; unset: the cores, shared among `edgerecon serve`'s workers",
+    )
     worker_nice: int = Field(
         10, ge=0, le=19, description="added niceness of worker processes, so fits yield the CPU to the API's requests"
     )
@@ -99,6 +124,22 @@ class Settings(BaseSettings):
     metrics_need_api_key: bool = Field(
         False, description="whether GET /metrics needs the API key (when one is set); off: scrapers need no secret"
     )
+
+    def data_path(self) -> Path:
+        """Where the embedded Redis keeps its data: ``data_dir``, or the user's data folder (XDG),
+        never a temporary one, so that jobs outlive a restart."""
+        if self.data_dir is not None:
+            return self.data_dir
+        xdg = os.environ.get("XDG_DATA_HOME")
+        return (Path(xdg) if xdg else Path.home() / ".local" / "share") / "edgerecon"
+
+    def torch_threads(self, workers: int = 1) -> int:
+        """Torch threads for each of ``workers`` worker processes on this machine: ``worker_threads``
+        if set, else the cores this process may use shared among them, so that a lone job on an idle
+        machine uses all of it and several workers do not oversubscribe it."""
+        if self.worker_threads is not None:
+            return self.worker_threads
+        return max(1, len(os.sched_getaffinity(0)) // max(1, workers))
 
 
 @lru_cache

@@ -4,17 +4,26 @@ A job is a hash (its record) plus compressed blobs (the input points and the thr
 under ``{prefix}:job:{id}`` and expiring together ``job_ttl`` seconds after the job's last change.
 Its status only moves along
 
-    queued -> running -> succeeded | failed | canceled,      queued -> canceled
+    queued -> running -> succeeded | failed | canceled,      queued -> canceled,
+    running -> queued (its worker died or was shut down, and it has attempts left)
 
 and every move is one atomic "update the record if its status is one of ..." (a Lua script), so a
 cancel, a crash verdict and a finishing worker cannot overwrite one another: the first one wins.
+The same script counts the attempts (each move to ``running``) and deletes the input points when
+the job ends, whichever way.
 
-The rq job that carries a job to a worker has the same id and only the id as its argument (JSON
-serializer); the parameters and points stay in the record and blobs.
+The rq job that carries a job to a worker has only the job's id as its argument (JSON serializer);
+the parameters and points stay in the record and blobs. The first rq job has the job's id; a job
+put back in the queue gets a fresh rq job (``{id}-{random}``) in the same transaction as the move,
+so a queued record always has an rq job. A stale rq job is harmless: ``start`` runs only a queued
+job, once.
 
-Crash detection: while a worker runs a job, its heartbeat keeps ``{prefix}:job:{id}:alive`` alive
-(``heartbeat_ttl`` seconds). A ``running`` job without that key belongs to a dead worker and is
-failed when its status is read or by the API's periodic sweep (``fail_orphans``).
+At-least-once: while a worker runs a job, its heartbeat keeps ``{prefix}:job:{id}:alive`` alive
+(``heartbeat_ttl`` seconds). A ``running`` job without that key belongs to a dead worker: when its
+status is read, or in the API's periodic sweep (``recover_orphans``), it goes back to the queue if
+it has run fewer than ``max_attempts`` times, and fails otherwise. rq's own abandoned-job handling
+(its StartedJobRegistry cleanup) is not used: it runs in a worker's maintenance pass (every 10
+minutes), when the rq job's own timeout (an hour) has passed, and knows nothing of our record.
 
 Every write of a record is announced on the Redis channel ``{prefix}:job:{id}:changes`` (the new
 status as the message), so that the API's event streams read the record when it changes instead of
@@ -33,6 +42,7 @@ import io
 import json
 import logging
 import math
+import secrets
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -42,7 +52,7 @@ from typing import Any, cast
 import numpy as np
 from redis import Redis
 from redis.asyncio import Redis as AsyncRedis
-from redis.exceptions import RedisError
+from redis.exceptions import OutOfMemoryError, RedisError, ResponseError
 from rq import Queue
 from rq.exceptions import NoSuchJobError
 from rq.job import Job
@@ -51,38 +61,63 @@ from rq.serializers import JSONSerializer
 from core.params import FitParams
 from worker.connection import text
 from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobRecord, JobStatus, Progress, Stage, is_job_id
-from worker.errors import InputExpired, InvalidJobId
+from worker.errors import InputExpired, InvalidJobId, StoreFull
 from worker.settings import Settings
 
 log = logging.getLogger("edgerecon.store")
 
 # KEYS[1] the record, KEYS[2] the set of running job ids, KEYS[3] the counts of statuses entered,
-# KEYS[4..] more keys of the job.
+# KEYS[4] the input points, KEYS[5..] more keys of the job.
 # ARGV[1] allowed statuses (space-separated), ARGV[2] job id, ARGV[3] ttl (0: leave expiries alone),
-# ARGV[4..] field, value, ... to set. Returns the status found (nil: no record); the update was
-# made if and only if that status is one of ARGV[1], and then announced on KEYS[1] .. ':changes'.
+# ARGV[4] attempts limit (0: none), ARGV[5] the attempt the caller runs (0: any), ARGV[6..] field,
+# value, ... to set (an empty value deletes the field). Returns {the status found ('': no record),
+# 1 if the update was made else 0}; it is made if and only if that status is one of ARGV[1], the job
+# has run fewer than ARGV[4] times (when ARGV[4] > 0) and its current attempt is ARGV[5] (when > 0:
+# a worker presumed dead, whose job runs again elsewhere, cannot write), and then it is announced
+# on KEYS[1] .. ':changes'. Each move to running is an attempt; a
+# move back to queued is counted as 'requeued' (so 'queued' stays the number submitted); a move to
+# a final status deletes the input points, which nothing needs any more.
 _UPDATE_IF = """
 local status = redis.call('HGET', KEYS[1], 'status')
 if not status or not string.find(' ' .. ARGV[1] .. ' ', ' ' .. status .. ' ', 1, true) then
-  return status
+  return {status or '', 0}
 end
-if #ARGV > 3 then redis.call('HSET', KEYS[1], unpack(ARGV, 4)) end
+local attempts = tonumber(redis.call('HGET', KEYS[1], 'attempts') or '0')
+local limit, attempt = tonumber(ARGV[4]), tonumber(ARGV[5])
+if (limit > 0 and attempts >= limit) or (attempt > 0 and attempts ~= attempt) then
+  return {status, 0}
+end
+for i = 6, #ARGV, 2 do
+  if ARGV[i + 1] == '' then
+    redis.call('HDEL', KEYS[1], ARGV[i])
+  else
+    redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1])
+  end
+end
 local new = redis.call('HGET', KEYS[1], 'status')
 if new == 'running' then
   redis.call('SADD', KEYS[2], ARGV[2])
 else
   redis.call('SREM', KEYS[2], ARGV[2])
 end
-if new ~= status then redis.call('HINCRBY', KEYS[3], new, 1) end
+if new ~= status then
+  if new == 'running' then redis.call('HINCRBY', KEYS[1], 'attempts', 1) end
+  redis.call('HINCRBY', KEYS[3], new == 'queued' and 'requeued' or new, 1)
+  if new == 'succeeded' or new == 'failed' or new == 'canceled' then redis.call('DEL', KEYS[4]) end
+end
 if tonumber(ARGV[3]) > 0 then
   for i = 1, #KEYS do
     if i ~= 2 and i ~= 3 then redis.call('EXPIRE', KEYS[i], ARGV[3]) end
   end
 end
 redis.call('PUBLISH', KEYS[1] .. ':changes', new)
-return status
+return {status, 1}
 """
 
+
+# New jobs are refused once Redis's memory in use would pass this share of its maxmemory: the rest
+# is for the outputs of the jobs that run (noeviction: a write past maxmemory fails).
+NEW_JOB_MEMORY_SHARE = 0.9
 
 # Upper bounds (seconds) of the buckets of the stage-duration histograms; changing them restarts the histograms.
 DURATION_BUCKETS = (0.5, 1, 2.5, 5, 10, 25, 50, 100, 250, 500, 1000, 2500, 5000)
@@ -154,6 +189,7 @@ class JobStore:
         self.ttl = settings.job_ttl
         self.timeout = settings.job_timeout
         self.heartbeat_ttl = settings.heartbeat_ttl
+        self.max_attempts = settings.max_attempts
         self.queue = Queue(settings.queue, connection=redis, serializer=JSONSerializer)
         self._update_if = redis.register_script(_UPDATE_IF)
 
@@ -179,18 +215,39 @@ class JobStore:
     ) -> JobStatus | None:
         """Set ``fields`` on the record if its status is in ``allowed``; return the status found.
         ``touch`` restarts the expiry of every key of the job."""
-        args: list[str | int] = [" ".join(allowed), job_id, self.ttl if touch else 0]
+        return self._move(job_id, allowed, fields, touch=touch)[0]
+
+    def _move(
+        self,
+        job_id: str,
+        allowed: tuple[JobStatus, ...],
+        fields: Mapping[str, str],
+        *,
+        touch: bool,
+        attempts_below: int = 0,
+        attempt: int = 0,
+        client: Any = None,
+    ) -> tuple[JobStatus | None, bool]:
+        """``_update``, also only while the job has run fewer than ``attempts_below`` times (0: any)
+        and is in its ``attempt``-th run (0: any); return the status found and whether the update
+        was made. With ``client`` (a transaction) the script is only queued: the answer is None, False."""
+        args: list[str | int] = [" ".join(allowed), job_id, self.ttl if touch else 0, attempts_below, attempt]
         for name, value in fields.items():
             args += [name, value]
-        found = self._update_if(keys=self._job_keys(job_id), args=args)
-        return JobStatus(text(found)) if found else None
+        answer = self._update_if(keys=self._job_keys(job_id), args=args, client=client)
+        if client is not None:
+            return None, False
+        found, made = answer
+        return (JobStatus(text(found)) if found else None), bool(made)
 
     # --- the API's side ----------------------------------------------------------------------------
 
     def create(self, job_id: str, points: np.ndarray, params: FitParams) -> None:
-        """Store the input and the record of a new job and enqueue it, all in one transaction."""
+        """Store the input and the record of a new job and enqueue it, all in one transaction;
+        ``StoreFull`` (and nothing stored) when Redis has no room for it."""
         self.redis.ping()  # a hung Redis fails here, before a write it might apply after the API answered 503
         packed = _pack_array(points)
+        self._check_room(len(packed))
         record: dict[Any, Any] = {  # typed as redis-py's hset wants it
             "status": JobStatus.QUEUED.value,
             "params": params.model_dump_json(),
@@ -203,22 +260,47 @@ class JobStore:
             pipe.hset(self._key(job_id), mapping=record)
             pipe.expire(self._key(job_id), self.ttl)
             pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
-            self.queue.enqueue_call(
-                JOB_FUNCTION,
-                args=(job_id,),
-                job_id=job_id,
-                timeout=self.timeout,
-                result_ttl=0,  # the outcome lives in the record; rq keeps only failures, for operators
-                failure_ttl=self.ttl,
-                pipeline=pipe,
-            )
-            pipe.execute()
+            self._enqueue(job_id, job_id, pipe)
+            try:
+                pipe.execute()
+            except OutOfMemoryError:  # full since the check: the transaction was refused whole
+                raise StoreFull(self._full_message()) from None
+
+    def _check_room(self, size: int) -> None:
+        """Raise ``StoreFull`` unless ``size`` more bytes keep Redis under ``NEW_JOB_MEMORY_SHARE`` of its maxmemory."""
+        try:
+            memory = self.redis.info("memory")
+        except ResponseError:  # INFO disabled (some managed Redis): Redis's own refusal still applies
+            return
+        limit, used = int(memory.get("maxmemory", 0)), int(memory.get("used_memory", 0))
+        if limit and used + size > NEW_JOB_MEMORY_SHARE * limit:
+            raise StoreFull(self._full_message(used, limit))
+
+    @staticmethod
+    def _full_message(used: int = 0, limit: int = 0) -> str:
+        state = f" ({used / 2**20:.0f} of {limit / 2**20:.0f} MiB in use)" if limit else ""
+        return (
+            f"the job store (Redis) is full{state}: no new job is accepted until running jobs end and old"
+            " ones expire; jobs already submitted, their status and their results are unaffected. Try again later"
+        )
+
+    def _enqueue(self, rq_id: str, job_id: str, pipe: Any) -> None:
+        """Queue an rq job ``rq_id`` that runs job ``job_id``, in the transaction ``pipe``."""
+        self.queue.enqueue_call(
+            JOB_FUNCTION,
+            args=(job_id,),
+            job_id=rq_id,
+            timeout=self.timeout,
+            result_ttl=0,  # the outcome lives in the record; rq keeps only failures, for operators
+            failure_ttl=self.ttl,
+            pipeline=pipe,
+        )
 
     def get(self, job_id: str) -> JobRecord | None:
-        """The job's record (None if unknown or expired); fails it first if its worker died."""
+        """The job's record (None if unknown or expired); requeues or fails it first if its worker died."""
         with self.redis.pipeline(transaction=False) as pipe:
             raw, pttl, alive = self._queue_read(pipe, job_id).execute()
-        if self._orphaned(raw, alive) and self.fail(job_id, ORPHANED):
+        if self._orphaned(raw, alive) and self.release(job_id, ORPHANED) is not None:
             return self.get(job_id)
         return self._record(job_id, raw, pttl)
 
@@ -227,7 +309,7 @@ class JobStore:
         assert self.async_redis is not None, "get_async needs the store's asyncio client"
         async with self.async_redis.pipeline(transaction=False) as pipe:
             raw, pttl, alive = await self._queue_read(pipe, job_id).execute()
-        if self._orphaned(raw, alive) and await asyncio.to_thread(self.fail, job_id, ORPHANED):
+        if self._orphaned(raw, alive) and await asyncio.to_thread(self.release, job_id, ORPHANED) is not None:
             return await self.get_async(job_id)
         return self._record(job_id, raw, pttl)
 
@@ -260,6 +342,7 @@ class JobStore:
             error=record.get("error"),
             result=json.loads(record["result"]) if "result" in record else None,
             worker=record.get("worker"),
+            attempts=int(record.get("attempts", 0)),
         )
 
     def cancel(self, job_id: str) -> JobStatus | None:
@@ -293,30 +376,64 @@ class JobStore:
             return found, None
         return found, zlib.decompress(blob)
 
-    def fail_orphans(self) -> list[str]:
-        """Fail every running job whose worker stopped signalling; return their ids."""
+    def recover_orphans(self) -> dict[str, JobStatus]:
+        """Requeue (or fail, when it has no attempt left) every running job whose worker stopped
+        signalling; return their ids and where each went."""
         running = [text(member) for member in self.redis.smembers(f"{self.prefix}:running")]
         running = [job_id for job_id in running if is_job_id(job_id)]
         if not running:
-            return []
+            return {}
         with self.redis.pipeline(transaction=False) as pipe:
             for job_id in running:
                 pipe.exists(self._key(job_id, "alive"))
             alive = pipe.execute()
-        failed = []
+        recovered = {}
         for job_id in (job_id for job_id, ok in zip(running, alive) if not ok):
-            found = self._update(job_id, (JobStatus.RUNNING,), self._failure(ORPHANED), touch=True)
-            if found == JobStatus.RUNNING:
-                failed.append(job_id)
-            elif found is None:  # the record expired: forget it
+            if not self.redis.exists(self._key(job_id)):  # the record expired: forget it
                 self.redis.srem(f"{self.prefix}:running", job_id)
-        return failed
+                continue
+            outcome = self.release(job_id, ORPHANED)
+            if outcome is not None:
+                recovered[job_id] = outcome
+        return recovered
+
+    def release(self, job_id: str, reason: str, attempt: int = 0) -> JobStatus | None:
+        """Put a running job (in its ``attempt``-th run, if > 0) whose run was cut short (its worker
+        died or is shutting down) back in the queue if it has run fewer than ``max_attempts`` times,
+        else fail it with ``reason``; return the new status (None: nothing changed)."""
+        fields = {"status": JobStatus.QUEUED.value, "progress": "", "worker": ""}
+        with self.redis.pipeline() as pipe:
+            pipe.multi()
+            # The move and a fresh rq job, together; if the move is refused the rq job is stale and
+            # the worker that takes it drops it (``start`` runs queued jobs only).
+            self._move(
+                job_id,
+                (JobStatus.RUNNING,),
+                fields,
+                touch=True,
+                attempts_below=self.max_attempts,
+                attempt=attempt,
+                client=pipe,
+            )
+            self._enqueue(f"{job_id}-{secrets.token_hex(4)}", job_id, pipe)
+            answers = pipe.execute()
+        found, made = answers[0]
+        if made:
+            log.warning("job %s back in the queue: %s", job_id, reason)
+            return JobStatus.QUEUED
+        if found and text(found) == JobStatus.RUNNING:  # no attempt left
+            attempts = self.redis.hget(self._key(job_id), "attempts")
+            tries = f"{int(attempts)} attempts" if attempts else "its attempts"
+            if self.fail(job_id, f"{reason}, after {tries} (the most allowed); submit the job again", attempt):
+                return JobStatus.FAILED
+        return None
 
     # --- the worker's side -------------------------------------------------------------------------
 
-    def start(self, job_id: str, worker: str) -> FitParams | None:
-        """Mark a queued job running on ``worker``; return its parameters, or None when it is no
-        longer queued (canceled while it waited, or expired): then it must not run."""
+    def start(self, job_id: str, worker: str) -> tuple[FitParams, int] | None:
+        """Mark a queued job running on ``worker``; return its parameters and which attempt this is
+        (1, 2, ...: the worker passes it to every later write), or None when it is no longer queued
+        (canceled while it waited, already taken, or expired): then it must not run."""
         # The heartbeat key goes first, so a running job always has one while its worker lives.
         self.keep_alive(job_id, worker)
         fields = {
@@ -327,11 +444,11 @@ class JobStore:
         }
         if self._update(job_id, (JobStatus.QUEUED,), fields, touch=True) != JobStatus.QUEUED:
             return None
-        params, created_at = self.redis.hmget(self._key(job_id), ["params", "created_at"])
-        if created_at:
+        params, created_at, attempts = self.redis.hmget(self._key(job_id), ["params", "created_at", "attempts"])
+        if created_at and attempts == b"1":  # a job's wait in the queue, counted once
             waited = datetime.fromisoformat(fields["started_at"]) - datetime.fromisoformat(text(created_at))
             self.observe_durations({"queued": waited.total_seconds()})
-        return FitParams.model_validate_json(params) if params else None
+        return (FitParams.model_validate_json(params), int(attempts or 0)) if params else None
 
     def keep_alive(self, job_id: str, worker: str) -> None:
         """The worker's heartbeat for a job it is running."""
@@ -345,13 +462,12 @@ class JobStore:
         points = np.load(io.BytesIO(zlib.decompress(cast(bytes, blob))), allow_pickle=False)
         return points.astype(np.float64, copy=False)  # the API stores float32 when that is exact
 
-    def set_progress(self, job_id: str, progress: Progress) -> bool:
+    def set_progress(self, job_id: str, progress: Progress, attempt: int = 0) -> bool:
         """Record the progress of a running job (a change: its keys' expiry restarts); False when it
-        is no longer running (canceled, failed by a crash verdict, expired): the worker should stop."""
-        return (
-            self._update(job_id, (JobStatus.RUNNING,), {"progress": progress.model_dump_json()}, touch=True)
-            == JobStatus.RUNNING
-        )
+        is no longer running, or no longer in ``attempt`` (canceled, requeued or failed by a crash
+        verdict, expired): the worker should stop."""
+        fields = {"progress": progress.model_dump_json()}
+        return self._move(job_id, (JobStatus.RUNNING,), fields, touch=True, attempt=attempt)[1]
 
     def observe_durations(self, seconds: Mapping[str, float]) -> None:
         """Add each stage's duration to its histogram (``seconds``: stage to seconds). Best effort:
@@ -383,13 +499,14 @@ class JobStore:
             durations=_histograms({text(field): float(value) for field, value in durations.items()}),
         )
 
-    def is_running(self, job_id: str) -> bool:
-        """Whether the job's status is still ``running``."""
-        return self.redis.hget(self._key(job_id), "status") == JobStatus.RUNNING.encode()
+    def is_running(self, job_id: str, attempt: int = 0) -> bool:
+        """Whether the job's status is still ``running`` (in its ``attempt``-th run, if > 0)."""
+        status, attempts = self.redis.hmget(self._key(job_id), ["status", "attempts"])
+        return status == JobStatus.RUNNING.encode() and (attempt == 0 or int(attempts or 0) == attempt)
 
-    def succeed(self, job_id: str, outputs: Mapping[str, bytes], summary: Mapping[str, Any]) -> bool:
-        """Store the outputs and mark the job succeeded, unless it stopped running meanwhile."""
-        if not self.is_running(job_id):  # finished already: a late write must not touch its outputs
+    def succeed(self, job_id: str, outputs: Mapping[str, bytes], summary: Mapping[str, Any], attempt: int = 0) -> bool:
+        """Store the outputs and mark the job succeeded, unless it stopped running (its ``attempt``) meanwhile."""
+        if not self.is_running(job_id, attempt):  # finished already: a late write must not touch its outputs
             return False
         keys = [self._key(job_id, name) for name in OUTPUT_NAMES]
         with self.redis.pipeline() as pipe:
@@ -397,14 +514,17 @@ class JobStore:
                 pipe.set(key, _pack(outputs[name]), ex=self.ttl)
             pipe.execute()
         fields = {"status": JobStatus.SUCCEEDED.value, "ended_at": _now(), "result": json.dumps(dict(summary))}
-        if self._update(job_id, (JobStatus.RUNNING,), fields, touch=True) == JobStatus.RUNNING:
+        found, made = self._move(job_id, (JobStatus.RUNNING,), fields, touch=True, attempt=attempt)
+        if made:
             return True
-        self.redis.delete(*keys)  # canceled or failed while they were written: they are not wanted
+        if found != JobStatus.SUCCEEDED:  # canceled or failed while they were written: they are not wanted
+            self.redis.delete(*keys)  # (another attempt that succeeded wrote the same outputs: keep them)
         return False
 
-    def fail(self, job_id: str, reason: str) -> bool:
-        """Mark a running job failed with a reason a user can read; False if it was not running."""
-        return self._update(job_id, (JobStatus.RUNNING,), self._failure(reason), touch=True) == JobStatus.RUNNING
+    def fail(self, job_id: str, reason: str, attempt: int = 0) -> bool:
+        """Mark a running job (in its ``attempt``-th run, if > 0) failed with a reason a user can
+        read; False if it was not running (that attempt)."""
+        return self._move(job_id, (JobStatus.RUNNING,), self._failure(reason), touch=True, attempt=attempt)[1]
 
     @staticmethod
     def _failure(reason: str) -> dict[str, str]:

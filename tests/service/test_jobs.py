@@ -190,6 +190,21 @@ def test_cancel_of_a_running_job_stops_its_worker_within_5_s(svc):
     assert httpx.get(f"{svc.url}/v1/jobs/{busy}/mesh.obj").status_code == 409
 
 
+def test_cancel_during_the_set_up_of_a_million_points_frees_the_worker_within_2_s(svc):
+    cloud = ply_binary(sphere(1_000_000))  # its neighbour queries alone take over 10 s
+    busy = svc.submit(cloud, **ENDLESS)["id"]
+    wait_for(lambda: (svc.job(busy)["progress"] or {}).get("stage") == "starting", 60, 0.05, "the set-up")
+    following = svc.submit(ply_binary(sphere(500)), **TINY)["id"]
+    time.sleep(1.0)  # well into the set-up
+    assert svc.job(busy)["progress"]["stage"] == "starting"
+    canceled_at = time.monotonic()
+    assert httpx.delete(f"{svc.url}/v1/jobs/{busy}").status_code == 204
+    svc.wait_status(following, {"running", "succeeded"}, timeout=10)
+    assert time.monotonic() - canceled_at < 2
+    svc.wait_status(following, {"succeeded"})
+    assert svc.job(busy)["status"] == "canceled"
+
+
 def test_cancel_during_extraction_stops_within_5_s(svc):
     cloud = ply_binary(sphere(500))
     busy = svc.submit(cloud, **SLOW_EXTRACTION)["id"]
@@ -216,43 +231,60 @@ def test_a_job_over_its_time_limit_fails_with_the_reason(svc, tmp_path):
         strict.stop()
 
 
-def test_reading_the_status_fails_a_job_whose_worker_died(redis_server, tmp_path):
+def test_reading_the_status_requeues_a_job_whose_worker_died_then_fails_it_after_its_last_attempt(
+    redis_server, tmp_path
+):
     service = Service(redis_server.url, tmp_path, sweep_interval=3600)  # no sweep: only the read
     service.start_api()
     try:
         job_id = service.submit(ply_binary(sphere(300)), **TINY)["id"]
+        assert service.job(job_id)["attempts"] == 0
         store = JobStore(service.redis, Settings(key_prefix=service.prefix, queue=service.queue))
-        assert store.start(job_id, "a-worker") is not None  # a worker took the job...
-        service.redis.delete(f"{service.prefix}:job:{job_id}:alive")  # ...and died: its heartbeat lapsed
-        assert service.record(job_id)["status"] == "running"
-        job = service.job(job_id)
-        assert job["status"] == "failed" and "stopped unexpectedly" in job["error"]
+        for attempt in (1, 2):  # EDGERECON_MAX_ATTEMPTS: 2
+            assert store.start(job_id, "a-worker") is not None  # a worker took the job...
+            service.redis.delete(f"{service.prefix}:job:{job_id}:alive")  # ...and died: its heartbeat lapsed
+            assert service.record(job_id)["status"] == "running"
+            job = service.job(job_id)
+            assert job["attempts"] == attempt
+            assert job["status"] == ("queued" if attempt == 1 else "failed"), job
+        assert "stopped unexpectedly" in job["error"] and "after 2 attempts" in job["error"]
     finally:
         service.stop()
 
 
-def test_sigkill_of_a_worker_mid_fit_fails_the_job(redis_server, tmp_path):
-    service = Service(redis_server.url, tmp_path)
-    service.start_api()
-    worker = service.start_worker()
-    service.wait_workers(1)
-    try:
-        job_id = service.submit(ply_binary(sphere(500)), **ENDLESS)["id"]
-        service.wait_fitting(job_id)
-        os.kill(worker.pid, signal.SIGKILL)
-        killed_at = time.monotonic()
-        # Nobody reads the status meanwhile: the API's periodic sweep alone must fail the job.
-        wait_for(lambda: service.record(job_id)["status"] == "failed", 60, 0.2, "the sweep to fail the job")
-        assert time.monotonic() - killed_at < 60
-        job = service.job(job_id)
-        assert job["status"] == "failed" and "stopped unexpectedly" in job["error"]
-        service.wait_workers(0, timeout=10)  # the dead worker no longer counts
+def _worker_running(service: Service, job_id: str):
+    """The worker process that runs the job (its rq name, in the record, is in its log)."""
+    name = service.record(job_id)["worker"]
+    logs = [(service.directory / f"worker-{index}.log").read_text() for index in range(len(service.workers))]
+    return next(worker for worker, log in zip(service.workers, logs) if f"Worker {name}:" in log)
 
-        service.start_worker()  # a new worker does not run the failed job again, and works
-        service.wait_workers(1)
-        fresh = service.submit(ply_binary(sphere(300)), **TINY)["id"]
-        service.wait_status(fresh, {"succeeded"})
-        assert service.job(job_id)["status"] == "failed"
+
+def test_a_job_whose_worker_is_shut_down_then_killed_runs_again_each_time_and_succeeds(redis_server, tmp_path):
+    service = Service(redis_server.url, tmp_path, max_attempts=3)
+    service.start_api()
+    service.start_worker(), service.start_worker()
+    service.wait_workers(2)
+    try:
+        job_id = service.submit(ply_binary(sphere(500)), **{**ENDLESS, "iterations": 300})["id"]
+        service.wait_fitting(job_id)
+        first = _worker_running(service, job_id)
+        first.send_signal(signal.SIGTERM)  # a rolling restart: the job goes back to the queue at once
+        stopped_at = time.monotonic()
+        wait_for(lambda: service.job(job_id)["attempts"] == 2, 30, 0.1, "the second attempt")
+        assert time.monotonic() - stopped_at < 5
+        assert first.wait(15) == 0
+        service.wait_fitting(job_id)
+        second = _worker_running(service, job_id)
+        assert second is not first
+
+        os.kill(second.pid, signal.SIGKILL)  # nobody reads the status: the API's sweep alone requeues it
+        killed_at = time.monotonic()
+        wait_for(lambda: service.record(job_id)["status"] == "queued", 30, 0.2, "the sweep to requeue the job")
+        assert time.monotonic() - killed_at < 3 + 1 + 2  # heartbeat TTL, sweep interval, slack
+        service.start_worker()
+        job = service.wait_status(job_id, {"succeeded", "failed"}, timeout=120)
+        assert job["status"] == "succeeded" and job["attempts"] == 3 and job["error"] is None
+        assert httpx.get(f"{service.url}/v1/jobs/{job_id}/mesh.obj").status_code == 200
     finally:
         service.stop()
 
@@ -301,7 +333,8 @@ def test_results_expire_together_with_their_artifacts(pair):
     job = pair.wait_status(job_id, {"succeeded"})
     for name in ("mesh.obj", "normals.json", "edges.json"):
         assert httpx.get(pair.url + job["links"][name]).status_code == 200
-    parts = ("", ":points", ":mesh.obj", ":normals.json", ":edges.json")
+    assert not pair.redis.exists(f"{pair.prefix}:job:{job_id}:points")  # the input went when the job ended
+    parts = ("", ":mesh.obj", ":normals.json", ":edges.json")
     keys = [f"{pair.prefix}:job:{job_id}{part}" for part in parts]
     ttls = [pair.redis.ttl(key) for key in keys]
     assert all(0 < ttl <= 30 for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls

@@ -40,6 +40,7 @@ def test_job_counters_gauges_and_stage_durations_follow_the_jobs(svc):
     waiting = svc.submit(cloud, **TINY)["id"]  # behind the busy one on the only worker
     during = scrape(svc.url)
     assert value(during, "edgerecon_jobs_submitted_total") == 2 and value(during, "edgerecon_jobs_started_total") == 1
+    assert value(during, "edgerecon_jobs_requeued_total") == 0
     assert value(during, "edgerecon_jobs_running") == 1 and value(during, "edgerecon_jobs_queued") == 1
 
     assert httpx.delete(f"{svc.url}/v1/jobs/{busy}").status_code == 204

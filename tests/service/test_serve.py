@@ -4,6 +4,8 @@ service, then Ctrl-C (SIGINT), after which no process of it may be left."""
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 import signal
 import subprocess
@@ -19,11 +21,17 @@ from tests.helpers import ENDLESS, ROOT, TEST_ENV, TINY, clean_environ, stop_pro
 from worker.redis_server import free_port
 
 
-def _serve(tmp_path, workers: int, **env) -> tuple[subprocess.Popen, str]:
+def _serve(tmp_path, workers: int, without: tuple[str, ...] = (), **env) -> tuple[subprocess.Popen, str]:
+    """Start ``edgerecon serve`` with the tests' settings (less ``without``) and ``env``; wait until it is ready."""
     port = free_port()
     command = [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--workers", str(workers)]
-    log = open(tmp_path / "serve.log", "wb")
-    process = subprocess.Popen(command, env={**clean_environ(), **TEST_ENV, **env}, cwd=ROOT, stdout=log, stderr=log)
+    log = open(tmp_path / "serve.log", "ab")
+    # Its data in the test's folder (not the user's), and its temporary files where they can be counted.
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    private = {"EDGERECON_DATA_DIR": str(tmp_path / "data"), "TMPDIR": str(tmp_path / "tmp")}
+    environ = {**clean_environ(), **TEST_ENV, **private, **env}
+    environ = {name: value for name, value in environ.items() if name not in without}
+    process = subprocess.Popen(command, env=environ, cwd=ROOT, stdout=log, stderr=log)
     url = f"http://127.0.0.1:{port}"
 
     def ready():
@@ -73,6 +81,70 @@ def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, ex
         stop_process(process, signal.SIGKILL)
 
 
+def _job(url: str, job_id: str) -> dict:
+    response = httpx.get(f"{url}/v1/jobs/{job_id}", timeout=10)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def _submit(url: str, cloud: bytes, params: dict) -> str:
+    data = {name: str(value) for name, value in params.items()}
+    response = httpx.post(f"{url}/v1/jobs", files={"points": ("cloud.ply", cloud)}, data=data, timeout=30)
+    assert response.status_code == 202, response.text
+    return response.json()["id"]
+
+
+def _alive(processes: list[psutil.Process]) -> list[int]:
+    return [child.pid for child in processes if child.is_running() and child.status() != psutil.STATUS_ZOMBIE]
+
+
+def test_serve_keeps_every_job_across_a_sigkill_and_brings_its_redis_back_within_5_s(tmp_path, example_cloud):
+    process, url = _serve(tmp_path, workers=1)
+    try:
+        done = _submit(url, example_cloud, TINY)
+        wait_for(lambda: _job(url, done)["status"] == "succeeded", 60, 0.2, "the first job")
+        mesh = httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content
+        busy = _submit(url, example_cloud, {**ENDLESS, "iterations": 300})
+        waiting = _submit(url, example_cloud, TINY)  # queued behind it
+        wait_for(lambda: (_job(url, busy)["progress"] or {}).get("stage") == "fitting", 60, 0.1, "the busy job")
+        family = psutil.Process(process.pid).children(recursive=True)
+        process.kill()  # no clean-up by serve itself: its children stop on their own (PDEATHSIG)
+        process.wait()
+        wait_for(lambda: _alive(family) == [], 20, 0.1, "the children of the killed serve to stop")
+        # Nothing left in temporary folders, but torch's compile cache (kept on purpose, shared by runs).
+        assert [path.name for path in (tmp_path / "tmp").iterdir() if not path.name.startswith("torchinductor")] == []
+        assert any((tmp_path / "data").rglob("*.aof"))  # the data is in the data folder
+    finally:
+        stop_process(process, signal.SIGKILL)
+
+    started = time.monotonic()
+    process, url = _serve(tmp_path, workers=1)  # the same data folder
+    try:
+        assert time.monotonic() - started < 30
+        assert _job(url, done)["status"] == "succeeded"
+        assert httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content == mesh
+        for job_id in (busy, waiting):  # the running job runs again, the queued one runs
+            wait_for(lambda job_id=job_id: _job(url, job_id)["status"] == "succeeded", 120, 0.2, "the jobs to run")
+        assert _job(url, busy)["attempts"] == 2 and _job(url, waiting)["attempts"] == 1
+
+        # The embedded Redis dies: the API answers 503 meanwhile, and serve brings it back with its data.
+        redis = next(c for c in psutil.Process(process.pid).children() if "redis-server" in " ".join(c.cmdline()))
+        redis.kill()
+        killed_at, answers = time.monotonic(), []
+        while time.monotonic() - killed_at < 15:
+            answers.append(httpx.get(f"{url}/v1/jobs/{done}", timeout=5).status_code)
+            if answers[-1] == 200 and 503 in answers:
+                break
+            time.sleep(0.05)
+        assert set(answers) == {503, 200} and answers[-1] == 200, answers
+        assert time.monotonic() - killed_at < 5
+        assert httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content == mesh
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+    finally:
+        stop_process(process, signal.SIGKILL)
+
+
 def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_server):
     # This worker also runs its warm-up fit (with eager kernels, to stay cheap).
     process, _ = _serve(
@@ -94,6 +166,18 @@ def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_s
         stop_process(process, signal.SIGKILL)
         for key in redis_server.client().keys("serve-test:*"):
             redis_server.client().delete(key)
+
+
+def test_serve_gives_its_lone_worker_every_core(tmp_path):
+    # (cores // N for each of N workers: tests/worker/test_settings.py)
+    process, _ = _serve(tmp_path, 1, without=("EDGERECON_WORKER_THREADS", "OMP_NUM_THREADS"))
+    try:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+    finally:
+        stop_process(process, signal.SIGKILL)
+    said = re.findall(r"torch ready: (\d+) thread", (tmp_path / "serve.log").read_text())
+    assert said == [str(len(os.sched_getaffinity(0)))]
 
 
 def test_worker_without_redis_url_says_so():

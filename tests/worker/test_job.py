@@ -56,7 +56,9 @@ def test_a_job_runs_to_success_with_its_outputs_progress_and_summary(runner):
     job_id = submit(runner)
     seen_running: list[str | None] = []
     write = runner.store.set_progress
-    runner.store.set_progress = lambda job, progress: seen_running.append(runner.running_job) or write(job, progress)
+    runner.store.set_progress = lambda job, progress, attempt: (
+        seen_running.append(runner.running_job) or write(job, progress, attempt)
+    )
     runner.run(job_id, "worker-1")
     record = runner.store.get(job_id)
     assert record.status == JobStatus.SUCCEEDED and record.worker == "worker-1" and record.error is None
@@ -113,22 +115,39 @@ def test_a_bug_is_not_blamed_on_the_input_and_keeps_its_traceback(runner, monkey
     assert record.error == "the reconstruction failed: KeyError: 'a bug (simulated)'"
 
 
-def test_a_shutdown_stops_the_running_job_and_fails_it_with_the_reason(runner):
+def test_a_shutdown_puts_the_running_job_back_in_the_queue_then_fails_it_on_its_last_attempt(runner):
     job_id = submit(runner, iterations=100_000)
     runner.shutdown.set()
     runner.run(job_id, "worker-1")
     record = runner.store.get(job_id)
-    assert record.status == JobStatus.FAILED and record.error == SHUTDOWN
+    assert record.status == JobStatus.QUEUED and record.attempts == 1 and record.error is None
+    assert runner.store.load_points(job_id) is not None  # kept for the next attempt
+    runner.run(job_id, "worker-2")  # the last of EDGERECON_MAX_ATTEMPTS=2
+    record = runner.store.get(job_id)
+    assert record.status == JobStatus.FAILED and record.attempts == 2
+    assert record.error == f"{SHUTDOWN}, after 2 attempts (the most allowed); submit the job again"
+
+
+def test_a_users_error_is_never_retried_and_its_input_is_deleted(runner):
+    job_id = submit(runner, resolution=32, iterations=1, width=16, depth=1, lambda3=0)
+    runner.store.cancel(job_id)
+    assert not runner.store.redis.exists(f"{runner.store.prefix}:job:{job_id}:points")
+    failing = submit(runner)
+    runner.store.redis.delete(f"{runner.store.prefix}:job:{failing}:points")
+    runner.run(failing, "worker-1")
+    record = runner.store.get(failing)
+    assert record.status == JobStatus.FAILED and record.attempts == 1
+    assert runner.store.queue.job_ids == [failing]  # only its first rq job (run here without rq): no retry
 
 
 def test_a_cancel_while_running_stops_the_fit_at_its_next_progress_write(runner):
     job_id = submit(runner, iterations=100_000)
     write = runner.store.set_progress
 
-    def cancel_at_the_tenth_step(job, progress):
+    def cancel_at_the_tenth_step(job, progress, attempt):
         if progress.iteration >= 10:
             runner.store.cancel(job)
-        return write(job, progress)
+        return write(job, progress, attempt)
 
     runner.store.set_progress = cancel_at_the_tenth_step
     runner.run(job_id, "worker-1")

@@ -44,3 +44,22 @@ def test_a_bad_value_is_refused(monkeypatch):
     monkeypatch.setenv("EDGERECON_HEARTBEAT_TTL", "1")
     with pytest.raises(ValidationError, match="heartbeat_ttl"):
         Settings()
+
+
+def test_torch_threads_default_to_the_cores_shared_among_the_workers(monkeypatch):
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(8)))
+    assert Settings().torch_threads() == 8
+    assert [Settings().torch_threads(workers) for workers in (2, 3, 8, 16)] == [4, 2, 1, 1]
+    monkeypatch.setenv("EDGERECON_WORKER_THREADS", "3")
+    assert Settings().torch_threads() == Settings().torch_threads(4) == 3
+
+
+def test_the_embedded_redis_keeps_its_data_in_the_users_data_folder_never_a_temporary_one(monkeypatch, tmp_path):
+    monkeypatch.delenv("XDG_DATA_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert Settings().data_path() == tmp_path / ".local" / "share" / "edgerecon"
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    assert Settings().data_path() == tmp_path / "xdg" / "edgerecon"
+    monkeypatch.setenv("EDGERECON_DATA_DIR", str(tmp_path / "mine"))
+    assert Settings().data_path() == tmp_path / "mine"
+    assert Settings().redis_maxmemory == 1024**3

@@ -54,7 +54,7 @@ def new_job(store: JobStore, points: np.ndarray | None = None) -> str:
 
 def running_job(store: JobStore, worker: str = "worker-1") -> str:
     job_id = new_job(store)
-    assert store.start(job_id, worker) == PARAMS
+    assert store.start(job_id, worker) == (PARAMS, 1)
     return job_id
 
 
@@ -109,7 +109,7 @@ def test_a_new_job_is_enqueued_for_the_job_function_by_name_with_only_its_id(sto
 
 def test_start_moves_a_queued_job_to_running_and_returns_its_parameters(store):
     job_id = new_job(store)
-    assert store.start(job_id, "worker-1") == PARAMS
+    assert store.start(job_id, "worker-1") == (PARAMS, 1)
     record = store.get(job_id)
     assert record.status == JobStatus.RUNNING and record.worker == "worker-1" and record.started_at
     assert record.progress == Progress(stage=Stage.STARTING, iteration=0, total=0)
@@ -186,8 +186,11 @@ def test_the_counts_of_statuses_entered_and_the_stage_histograms_follow_the_tran
 
 def test_every_key_of_a_job_expires_together(store):
     job_id = running_job(store)
-    store.succeed(job_id, OUTPUTS, SUMMARY)
-    parts = ("", ":points", *(f":{name}" for name in OUTPUT_NAMES))
+    store.set_progress(job_id, FITTING)
+    ttls = [store.redis.ttl(f"{store.prefix}:job:{job_id}{part}") for part in ("", ":points")]
+    assert all(0 < ttl <= TTL for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls
+    store.succeed(job_id, OUTPUTS, SUMMARY)  # the input is deleted; the outputs expire with the record
+    parts = ("", *(f":{name}" for name in OUTPUT_NAMES))
     ttls = [store.redis.ttl(f"{store.prefix}:job:{job_id}{part}") for part in parts]
     assert all(0 < ttl <= TTL for ttl in ttls) and max(ttls) - min(ttls) <= 1, ttls
 
@@ -328,15 +331,44 @@ def test_cancel_and_succeed_at_once_leave_one_consistent_outcome(store):
             assert kept_outputs(store, job_id) == []
 
 
-def test_reading_a_job_whose_worker_died_fails_it_as_orphaned(store):
+def rq_jobs_for(store: JobStore, job_id: str) -> list[str]:
+    """The ids of the rq jobs in the queue that would run job ``job_id``."""
+    return [
+        rq_id
+        for rq_id in store.queue.job_ids
+        if list(Job.fetch(rq_id, connection=store.redis, serializer=JSONSerializer).args) == [job_id]
+    ]
+
+
+def test_reading_a_job_whose_worker_died_puts_it_back_in_the_queue_with_its_input(store):
     job_id = running_job(store)
+    store.queue.empty()  # the worker had taken its rq job
     kill_worker_of(store, job_id)
     record = store.get(job_id)
-    assert record.status == JobStatus.FAILED and record.error == ORPHANED and record.ended_at
-    assert not is_in_running_set(store, job_id)
+    assert record.status == JobStatus.QUEUED and record.attempts == 1 and record.error is None
+    assert record.progress is None and record.worker is None and not is_in_running_set(store, job_id)
+    assert len(rq_jobs_for(store, job_id)) == 1  # in the same transaction as the move
+    assert store.load_points(job_id) is not None
+    assert store.start(job_id, "worker-2") == (PARAMS, 2)
+    assert store.get(job_id).attempts == 2
 
 
-def test_reading_asynchronously_fails_an_orphan_too(store, redis_server):
+def test_a_job_whose_worker_died_on_its_last_attempt_fails_with_the_reason_and_count(store):
+    job_id = running_job(store)
+    for attempt in (1, 2):
+        kill_worker_of(store, job_id)
+        record = store.get(job_id)
+        if attempt == 1:
+            assert record.status == JobStatus.QUEUED
+            assert store.start(job_id, "worker-2") == (PARAMS, 2)
+    assert record.status == JobStatus.FAILED and record.ended_at and record.attempts == 2
+    assert record.error == f"{ORPHANED}, after 2 attempts (the most allowed); submit the job again"
+    assert not store.redis.exists(f"{store.prefix}:job:{job_id}:points")  # ended: its input is gone
+    counts = {key.decode(): int(value) for key, value in store.redis.hgetall(f"{store.prefix}:counts").items()}
+    assert counts == {"queued": 1, "running": 2, "requeued": 1, "failed": 1}  # queued: submitted once
+
+
+def test_reading_asynchronously_requeues_an_orphan_too(store, redis_server):
     job_id = running_job(store)
     kill_worker_of(store, job_id)
 
@@ -345,34 +377,54 @@ def test_reading_asynchronously_fails_an_orphan_too(store, redis_server):
             return await JobStore(store.redis, settings_of(store), client).get_async(job_id)
 
     record = asyncio.run(read())
-    assert record.status == JobStatus.FAILED and record.error == ORPHANED
-    assert status(store, job_id) == JobStatus.FAILED
+    assert record.status == JobStatus.QUEUED and record.attempts == 1
+    assert status(store, job_id) == JobStatus.QUEUED
 
 
-def test_the_sweep_fails_only_the_jobs_whose_worker_died(store):
+def test_the_sweep_requeues_only_the_jobs_whose_worker_died(store):
     alive, dead = running_job(store, "worker-1"), running_job(store, "worker-2")
     kill_worker_of(store, dead)
-    assert store.fail_orphans() == [dead]
-    assert status(store, dead) == JobStatus.FAILED and status(store, alive) == JobStatus.RUNNING
-    assert store.fail_orphans() == []
+    assert store.recover_orphans() == {dead: JobStatus.QUEUED}
+    assert status(store, dead) == JobStatus.QUEUED and status(store, alive) == JobStatus.RUNNING
+    assert store.recover_orphans() == {}
 
 
 def test_the_sweep_forgets_running_jobs_whose_record_expired(store):
     job_id = running_job(store)
     store.redis.delete(f"{store.prefix}:job:{job_id}", f"{store.prefix}:job:{job_id}:alive")
-    assert store.fail_orphans() == []
+    assert store.recover_orphans() == {}
     assert not is_in_running_set(store, job_id)
 
 
-def test_a_late_write_from_a_killed_worker_changes_nothing(store):
-    """The worker was only presumed dead (its heartbeat lapsed, say a long pause): once its job is
-    failed as orphaned, its progress, result or failure arrive too late and are dropped."""
+def test_a_late_write_from_a_worker_presumed_dead_changes_nothing_even_once_the_job_runs_again(store):
+    """The worker was only presumed dead (its heartbeat lapsed, say a long pause, or Redis hung):
+    once its job is requeued and taken by another worker, its progress, result or failure (of
+    attempt 1) arrive too late and are dropped, so the job runs to one outcome only."""
     job_id = running_job(store)
     kill_worker_of(store, job_id)
-    assert store.fail_orphans() == [job_id]
-    assert not store.set_progress(job_id, FITTING)
-    assert not store.succeed(job_id, OUTPUTS, SUMMARY)
-    assert not store.fail(job_id, "the worker's own reason")
+    assert store.recover_orphans() == {job_id: JobStatus.QUEUED}
+    assert store.start(job_id, "worker-2") == (PARAMS, 2)
+    assert not store.set_progress(job_id, FITTING, attempt=1) and not store.is_running(job_id, attempt=1)
+    assert not store.succeed(job_id, OUTPUTS, SUMMARY, attempt=1)
+    assert not store.fail(job_id, "the worker's own reason", attempt=1)
+    assert store.release(job_id, "shut down", attempt=1) is None
+    assert store.get(job_id).status == JobStatus.RUNNING and kept_outputs(store, job_id) == []
+    assert store.set_progress(job_id, FITTING, attempt=2) and store.succeed(job_id, OUTPUTS, SUMMARY, attempt=2)
+    assert not store.succeed(job_id, OUTPUTS, SUMMARY, attempt=1)
     record = store.get(job_id)
-    assert record.status == JobStatus.FAILED and record.error == ORPHANED and record.result is None
-    assert kept_outputs(store, job_id) == [] and not store.is_running(job_id)
+    assert record.status == JobStatus.SUCCEEDED and record.result == SUMMARY
+    assert kept_outputs(store, job_id) == list(OUTPUT_NAMES)
+
+
+def test_the_input_is_deleted_as_soon_as_the_job_ends_whichever_way(store):
+    ended = {}
+    for how in ("succeed", "fail", "cancel running", "cancel queued"):
+        job_id = new_job(store) if how == "cancel queued" else running_job(store)
+        if how == "succeed":
+            store.succeed(job_id, OUTPUTS, SUMMARY)
+        elif how == "fail":
+            store.fail(job_id, "no surface")
+        else:
+            store.cancel(job_id)
+        ended[how] = bool(store.redis.exists(f"{store.prefix}:job:{job_id}:points"))
+    assert ended == dict.fromkeys(ended, False)
