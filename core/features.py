@@ -7,7 +7,8 @@ walks over the surface across the direction of turning, by ``SIDE_STEP`` to each
 the normal there; at one and a half steps it reads it again. Both sides flat (the two readings of
 each side within ``FLAT_TURNING``) and turned from one another by at least ``EDGE_TURNING``: the
 candidate lies in the band of an edge, and the planes of the two faces meet on that edge. A curved
-face (a hole's wall of radius 0.05, a sphere) keeps turning over the walk, so it is never sharpened.
+face is never sharpened: up to a radius of about 0.2 (a hole's wall) it keeps turning over the walk,
+and beyond that its two sides are turned by less than ``EDGE_TURNING``.
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ from scipy.spatial import cKDTree
 # (n, 3) points -> f (n,) and ∇f (n, 3), float64
 Derivatives = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
-SIDE_STEP = 0.03  # unit frame: past the rounding band of a fitted edge, within the faces of thin parts
-FLAT_TURNING = 6.0  # degrees the normal may turn from one to one and a half steps on a flat face
+SIDE_STEP = 0.04  # unit frame: past a fitted edge's rounding band (0.03 left more of it; 0.05 overshot small faces)
+FLAT_TURNING = 5.0  # degrees the normal may turn from one to one and a half steps on a face (radius 0.2: 5.7)
 MAX_OFFSET = 0.02  # unit frame: the farthest a crossing lies from a face's plane beside it (rounding)
 EDGE_TURNING = 25.0  # degrees between the two faces' normals for an edge (faces meeting at up to 155°)
 _CANDIDATE_TURNING = 3.0  # degrees to a nearby crossing's normal that make a crossing worth the walk

@@ -76,14 +76,19 @@ def _download_and_check(service: Service, job: dict, points: np.ndarray) -> trim
     assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
 
     edges = edges_response.json()
-    assert set(edges) == {"tau", "count", "indices", "points", "laplacian"}
+    assert set(edges) == {"tau", "count", "indices", "points", "laplacian", "curves"}
     assert edges["tau"] == job["params"]["tau"] and edges["count"] == job["result"]["edge_points"]
     assert len(edges["indices"]) == len(edges["points"]) == len(edges["laplacian"]) == edges["count"]
+    assert len(edges["curves"]) == job["result"]["edge_curves"]
+    for curve in edges["curves"]:
+        assert set(curve) == {"points", "dihedral", "convex"} and len(curve["points"]) >= 2
+        assert 0 < curve["dihedral"] < 180 and isinstance(curve["convex"], bool)
     if edges["count"]:
         indices = np.asarray(edges["indices"])
         assert 0 <= indices.min() and indices.max() < len(points)
         assert np.allclose(np.asarray(edges["points"]), points[indices])
-        assert min(edges["laplacian"]) > edges["tau"]
+        if job["params"]["extraction"] == "mc":  # the sharp extraction's edge points are those near its curves
+            assert min(edges["laplacian"]) > edges["tau"]
     _check_preview(service, job, points)
     return mesh
 

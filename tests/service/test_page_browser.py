@@ -73,8 +73,17 @@ CHROMIUM_ARGS = [
     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
 ]  # fmt: skip
 API_KEY = secrets.token_urlsafe(16)
-# A cube that fits in about 15 s on one busy core, with its edges found (tau 10 marks them at 300 steps).
-QUICK = {"iterations": 300, "resolution": 64, "width": 128, "depth": 3, "batch_points": 512, "tau": 10}
+# A cube that fits in about 15 s on one busy core, with its edges found (tau 10 marks them at 300 steps,
+# with the marching-cubes extraction: so short a fit is too round for the sharp one's edge curves).
+QUICK = {
+    "iterations": 300,
+    "resolution": 64,
+    "width": 128,
+    "depth": 3,
+    "batch_points": 512,
+    "tau": 10,
+    "extraction": "mc",
+}
 LONG = {"iterations": 100000, "resolution": 32, "width": 16, "depth": 1, "batch_points": 128}
 EDGE_RGB, CONVEX_RGB = (255, 61, 0), (255, 179, 0)  # the viewer's colours (viewer.js)
 VANISH_RGB, EIKONAL_RGB = (31, 119, 180), (44, 160, 44)  # two loss curves' colours (progress.js)
@@ -182,7 +191,11 @@ def fill_params(page, params: dict) -> None:
     if page.get_attribute("#params", "open") is None:
         page.click("#params summary")
     for name, value in params.items():
-        page.fill(f"#param-{name}", str(value))
+        selector = f"#param-{name}"
+        if page.eval_on_selector(selector, "field => field.tagName") == "SELECT":
+            page.select_option(selector, str(value))
+        else:
+            page.fill(selector, str(value))
 
 
 def submit(page, cloud: Path, params: dict) -> str:
