@@ -15,6 +15,11 @@ dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
 samples against the true edges as ECD does the edge points; ``genus`` is the mesh's.
+``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D (bench/speed.py's pipeline: PCA normals,
+orientation, depth 9, trimming), scored the same way with the cloud's normals; it has no edges
+(their scores are blank), its fit s is the normals' estimation and orientation and its extract s
+the Poisson solve. It needs the ``bench`` extra, and is in the default list only when Open3D is
+installed.
 
 Steps: one training step (``core.fit.step_loss``, backward, Adam) with and without the
 Laplacian term, alternated in one run so that the machine's load hits both; medians, the
@@ -52,6 +57,8 @@ CONFIGS = {
     "default": {},
     "mc": {"extraction": "mc"},
 }
+# Baselines that are not a fit: scored like a configuration, run by run_baseline.
+BASELINES = {"poisson": "screened Poisson (Open3D), as bench/speed.py runs it"}
 CLOUDS = [
     "cube",
     "box_hole",
@@ -88,7 +95,9 @@ COLUMNS = [
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", choices=["quality", "steps", "throughput"], action="append")
-    parser.add_argument("--configs", default=",".join(CONFIGS), help="comma-separated, from: " + ", ".join(CONFIGS))
+    parser.add_argument(
+        "--configs", default=",".join(default_configs()), help="comma-separated, from: " + ", ".join(all_configs())
+    )
     parser.add_argument("--clouds", default=",".join(CLOUDS), help="shape or shape/points file, comma-separated")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a FitParams field")
     parser.add_argument("--data", type=Path, default=DATA)
@@ -118,6 +127,16 @@ def main() -> int:
     args.out.write_text(report)
     print(f"written to {args.out}", file=sys.stderr)
     return 0
+
+
+def all_configs() -> list[str]:
+    return [*CONFIGS, *BASELINES]
+
+
+def default_configs() -> list[str]:
+    import importlib.util
+
+    return all_configs() if importlib.util.find_spec("open3d") else list(CONFIGS)
 
 
 def machine() -> str:
@@ -151,9 +170,11 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     from evaluation.metrics import edge_chamfer
     from evaluation.sample_data import evaluate_shape
 
-    configure_core()
     shape, _, points_file = cloud.partition("/")
     points_file = points_file or "points.ply"
+    if config in BASELINES:
+        return run_baseline(data / shape, points_file)
+    configure_core()
     points = read_points(data / shape / points_file)
     result = reconstruct(points, params_for(config, overrides))
     scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, data / shape, points_file=points_file)
@@ -165,6 +186,24 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+
+
+def run_baseline(shape_dir: Path, points_file: str) -> dict:
+    """Screened Poisson of one cloud in this process, scored like a fit; edge scores NaN (no edges)."""
+    import trimesh
+    from speed import screened_poisson  # bench/speed.py, beside this file
+
+    from evaluation.sample_data import evaluate_shape
+
+    vertices, faces, normals, stages = screened_poisson(shape_dir / points_file)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    scores = evaluate_shape(mesh, normals, np.zeros(0, dtype=np.int64), shape_dir, points_file=points_file)
+    for key in ("edge_precision", "edge_recall", "edge_iou", "ecd", "edge_false_share", "curve_ecd"):
+        scores[key] = float("nan")
+    scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    timings = {"fit_seconds": stages["normals_seconds"], "extract_seconds": stages["poisson_seconds"]}
+    return {**scores, **timings, "peak_mb": peak_kb / 1024, "edge_points": 0}
 
 
 def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) -> str:
@@ -189,7 +228,9 @@ def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) 
         "## Quality and time per shape",
         "",
         f"Shipped defaults: {params.model_dump()}.",
-        "Configurations: " + "; ".join(f"`{name}` = {CONFIGS[name] or 'the defaults'}" for name in configs) + ".",
+        "Configurations: "
+        + "; ".join(f"`{name}` = {BASELINES.get(name) or CONFIGS[name] or 'the defaults'}" for name in configs)
+        + ".",
         "",
         table(["cloud", "config"], [((cloud, config), rows[config, cloud]) for cloud in clouds for config in configs]),
         "",
