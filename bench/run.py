@@ -15,11 +15,11 @@ dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
 samples against the true edges as ECD does the edge points; ``genus`` is the mesh's.
-``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D (bench/speed.py's pipeline: PCA normals,
-orientation, depth 9, trimming), scored the same way with the cloud's normals; it has no edges
-(their scores are blank), its fit s is the normals' estimation and orientation and its extract s
-the Poisson solve. It needs the ``bench`` extra, and is in the default list only when Open3D is
-installed.
+``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D
+(bench/speed.py's pipeline: PCA normals, orientation, depth 9, trimming), scored the same way
+with the cloud's normals; it has no edges (their scores are blank), its fit s is the normals'
+estimation and orientation and its extract s the Poisson solve. It needs the ``bench`` extra, and
+is in the default list only when Open3D is installed.
 
 Steps: one training step (``core.fit.step_loss``, backward, Adam) with and without the
 Laplacian term, alternated in one run so that the machine's load hits both; medians, the
