@@ -127,16 +127,29 @@ def test_serve_keeps_every_job_across_a_sigkill_and_brings_its_redis_back_within
             wait_for(lambda job_id=job_id: _job(url, job_id)["status"] == "succeeded", 120, 0.2, "the jobs to run")
         assert _job(url, busy)["attempts"] == 2 and _job(url, waiting)["attempts"] == 1
 
-        # The embedded Redis dies: the API answers 503 meanwhile, and serve brings it back with its data.
-        redis = next(c for c in psutil.Process(process.pid).children() if "redis-server" in " ".join(c.cmdline()))
+        # The embedded Redis dies: the API answers 503 meanwhile (or nothing but 200, when the new Redis
+        # is up before the next request: serve restarts it within a few tenths of a second), and serve
+        # brings it back with its data.
+        def redis_servers() -> list[psutil.Process]:
+            found = []
+            for child in psutil.Process(process.pid).children():
+                try:  # the killed one is a zombie until serve reaps it
+                    if child.status() != psutil.STATUS_ZOMBIE and "redis-server" in " ".join(child.cmdline()):
+                        found.append(child)
+                except psutil.Error:
+                    continue
+            return found
+
+        redis = redis_servers()[0]
         redis.kill()
-        killed_at, answers = time.monotonic(), []
+        killed_at, answers, restarted = time.monotonic(), [], False
         while time.monotonic() - killed_at < 15:
             answers.append(httpx.get(f"{url}/v1/jobs/{done}", timeout=5).status_code)
-            if answers[-1] == 200 and 503 in answers:
+            restarted = restarted or any(server.pid != redis.pid for server in redis_servers())
+            if restarted and answers[-1] == 200:
                 break
             time.sleep(0.05)
-        assert set(answers) == {503, 200} and answers[-1] == 200, answers
+        assert restarted and set(answers) <= {503, 200} and answers[-1] == 200, answers
         assert time.monotonic() - killed_at < 5
         assert httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content == mesh
         process.send_signal(signal.SIGTERM)
