@@ -270,7 +270,9 @@ def test_a_job_whose_worker_is_shut_down_then_killed_runs_again_each_time_and_su
     service.start_worker(), service.start_worker()
     service.wait_workers(2)
     try:
-        job_id = service.submit(ply_binary(sphere(500)), **{**ENDLESS, "iterations": 300})["id"]
+        # Long enough (about 13 s on an idle machine) that each attempt is still fitting when it is
+        # stopped: at 300 steps a quiet machine finished the job before the SIGTERM arrived.
+        job_id = service.submit(ply_binary(sphere(500)), **{**ENDLESS, "iterations": 2000})["id"]
         service.wait_fitting(job_id)
         first = _worker_running(service, job_id)
         first.send_signal(signal.SIGTERM)  # a rolling restart: the job goes back to the queue at once

@@ -104,7 +104,7 @@ def test_serve_keeps_every_job_across_a_sigkill_and_brings_its_redis_back_within
         done = _submit(url, example_cloud, TINY)
         wait_for(lambda: _job(url, done)["status"] == "succeeded", 60, 0.2, "the first job")
         mesh = httpx.get(f"{url}/v1/jobs/{done}/mesh.obj").content
-        busy = _submit(url, example_cloud, {**ENDLESS, "iterations": 300})
+        busy = _submit(url, example_cloud, {**ENDLESS, "iterations": 2000})
         waiting = _submit(url, example_cloud, TINY)  # queued behind it
         wait_for(lambda: (_job(url, busy)["progress"] or {}).get("stage") == "fitting", 60, 0.1, "the busy job")
         family = psutil.Process(process.pid).children(recursive=True)
