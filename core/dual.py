@@ -22,7 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
-from core.features import Derivatives, SidePlanes, side_planes
+from core.features import Derivatives, SidePlanes, side_planes, unit
 from core.grid import Grid
 
 # Directions whose weight in a patch's QEF is below this fraction of the strongest are left free
@@ -53,8 +53,7 @@ def dual_contour(grid: Grid, values_at: Function, derivatives_at: Derivatives, s
     values = np.where(np.abs(values) < tiny, np.where(values < 0, -tiny, tiny), values)
     corners, triangles, _, _ = marching_cubes(values, 0.0)
     crossings, axis, lower = _crossings(grid, corners)
-    normals = derivatives_at(crossings)[1]
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = unit(derivatives_at(crossings)[1])
 
     cells = np.asarray(values.shape) - 1
     # A triangle's cell from the midpoints of its vertices' grid edges: their centre is strictly
@@ -71,8 +70,9 @@ def dual_contour(grid: Grid, values_at: Function, derivatives_at: Derivatives, s
     if sharpen:
         sides = side_planes(crossings, normals, derivatives_at)
         placed, slack = _sharpen(patch_of_key, sides, key_vertex, own[0], placed, slack)
-    low = grid.position(np.stack(np.unravel_index(patch_cell, cells), axis=1) - slack[:, None])
-    high = grid.position(np.stack(np.unravel_index(patch_cell, cells), axis=1) + 1 + slack[:, None])
+    cell_index = np.stack(np.unravel_index(patch_cell, cells), axis=1)
+    low = grid.position(cell_index - slack[:, None])
+    high = grid.position(cell_index + 1 + slack[:, None])
     placed = np.clip(placed, low, high)
     moved = slack > CELL_SLACK
 

@@ -95,7 +95,7 @@ def _turning(crossings: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np
     if len(candidates) == 0:
         return candidates, np.zeros((0, 3))
     normal = normals[candidates]
-    first = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+    first = unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
     second = np.cross(normal, first)
     basis = np.stack([first, second], axis=2)  # (m, 3, 2)
     offsets = np.einsum("mkj,mja->mka", crossings[neighbours[candidates]] - crossings[candidates, None], basis)
@@ -106,7 +106,7 @@ def _turning(crossings: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np
     shape = np.linalg.solve(gram, np.einsum("mka,mkb->mab", offsets, turns))
     _, vectors = np.linalg.eigh(np.einsum("mab,mcb->mac", shape, shape))
     across = np.einsum("mja,ma->mj", basis, vectors[:, :, -1])
-    return candidates, _unit(across)
+    return candidates, unit(across)
 
 
 def _walk(
@@ -125,13 +125,14 @@ def _walk(
         for _ in range(_PROJECTION_STEPS):
             value, gradient = derivatives_at(point)
             point = point - (value / np.maximum(np.einsum("ij,ij->i", gradient, gradient), 1e-12))[:, None] * gradient
-        normal = _unit(gradient)
+        normal = unit(gradient)
         turned = direction - np.einsum("ij,ij->i", direction, normal)[:, None] * normal
-        direction = np.where(np.linalg.norm(turned, axis=1, keepdims=True) > 1e-6, _unit(turned), direction)
+        direction = np.where(np.linalg.norm(turned, axis=1, keepdims=True) > 1e-6, unit(turned), direction)
         if index == 2 * _WALK_STEPS // 3:
             near, near_normal = point, normal
     return near, near_normal, normal
 
 
-def _unit(vectors: np.ndarray) -> np.ndarray:
+def unit(vectors: np.ndarray) -> np.ndarray:
+    """Each row of ``vectors`` (n, 3) scaled to length 1 (a zero row stays zero)."""
     return vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
