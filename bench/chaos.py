@@ -40,6 +40,7 @@ FINAL = {"succeeded", "failed", "canceled"}
 # Fast failure detection and no compile time, so that a run of hundreds of jobs takes minutes.
 ENV = {
     "EDGERECON_COMPILE": "0",
+    "EDGERECON_WORKER_WARMUP": "0",
     "EDGERECON_HEARTBEAT_TTL": "6",
     "EDGERECON_SWEEP_INTERVAL": "1",
     "EDGERECON_PROGRESS_INTERVAL": "0.25",

@@ -46,7 +46,7 @@ JOB = {"iterations": 300, "resolution": 64, "width": 64, "depth": 3, "batch_poin
 LONG_JOB = {"iterations": 100_000, "resolution": 64}  # default network: a realistic CPU load
 
 
-def start_service(directory: Path, api_workers: int, worker_nice: int) -> tuple[str, list]:
+def start_service(directory: Path, api_workers: int, warmup: bool, worker_nice: int) -> tuple[str, list]:
     """Start redis-server, the API and one worker; return the API's URL and the processes to stop
     (the Redis server last)."""
     redis = RedisServer(directory).start()
@@ -58,6 +58,7 @@ def start_service(directory: Path, api_workers: int, worker_nice: int) -> tuple[
             "REDIS_URL": redis.url,
             "EDGERECON_KEY_PREFIX": run,
             "EDGERECON_QUEUE": run,
+            "EDGERECON_WORKER_WARMUP": "1" if warmup else "0",
             "EDGERECON_WORKER_THREADS": "1",
             "OMP_NUM_THREADS": "1",
             "EDGERECON_WORKER_NICE": str(worker_nice),
@@ -117,7 +118,7 @@ def overhead(repeat: int, worker_nice: int) -> None:
     torch.set_num_threads(1)  # as the worker
     with tempfile.TemporaryDirectory() as tmp:
         directory = Path(tmp)
-        url, processes = start_service(directory, api_workers=1, worker_nice=worker_nice)
+        url, processes = start_service(directory, api_workers=1, warmup=True, worker_nice=worker_nice)
         os.nice(worker_nice)  # this process's fits run at the worker's priority
         try:
             run_in_process(directory / "warm")  # compile and warm caches in this process
@@ -167,7 +168,7 @@ async def _poller(host: str, port: int, path: str, rate: float, deadline: float,
 
 def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_nice: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
-        url, processes = start_service(Path(tmp), api_workers=api_workers, worker_nice=worker_nice)
+        url, processes = start_service(Path(tmp), api_workers=api_workers, warmup=True, worker_nice=worker_nice)
         try:
             job = httpx.post(
                 url + "/v1/jobs",
@@ -175,7 +176,7 @@ def polls(clients: int, rate: float, seconds: float, api_workers: int, worker_ni
                 data={k: str(v) for k, v in LONG_JOB.items()},
             ).json()
             while (httpx.get(f"{url}/v1/jobs/{job['id']}").json()["progress"] or {}).get("iteration", 0) < 3:
-                time.sleep(0.1)  # the fit is under way (the worker compiled its kernels at start)
+                time.sleep(0.1)  # the fit is under way (compiled at the worker's warm-up)
             host, port = url.removeprefix("http://").split(":")
             latencies: list[float] = []
 

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
-import time
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -208,11 +206,6 @@ class _Kernels:
     ``core.runtime.configure`` sets ``compiled`` for the process. A kernel whose compilation fails
     in the compiler backend (no C++ compiler, an unsupported platform) runs eagerly from then on,
     and the first such failure is logged; any other error is a bug in the kernel and propagates.
-
-    With ``background`` on, compiling (25-45 s on a fresh install, a few seconds from torch's
-    disk cache) happens in a thread, on a tiny network taken through a fit's and an extraction's
-    paths (``_compile_job_paths``): until it is done every other thread runs the eager kernels,
-    which give the same values, so a job's first step does not wait for the compiler.
     """
 
     _eager: ClassVar[dict[str, Callable[..., Any]]] = {
@@ -222,20 +215,14 @@ class _Kernels:
         "hidden_activation_backward": _hidden_activation_backward,
     }
 
-    def __init__(self, compiled: bool = True, background: bool = False):
+    def __init__(self, compiled: bool = True):
         self.compiled = compiled
-        self.background = background
         self.fell_back: set[str] = set()  # the kernels whose compilation failed
         self._functions: dict[str, Callable[..., Any]] = {}
-        self._compiler: threading.Thread | None = None
-        self._ready = threading.Event()
 
     def __getattr__(self, name: str) -> Callable[..., Any]:
         eager = self._eager[name]
         if not self.compiled or name in self.fell_back:
-            return eager
-        if self.background and threading.current_thread() is not self._compiler and not self._ready.is_set():
-            self.start_compiling()
             return eager
         if name not in self._functions:
             self._functions[name] = torch.compile(eager, dynamic=True)
@@ -253,64 +240,10 @@ class _Kernels:
 
         return call
 
-    def start_compiling(self) -> None:
-        """Compile the kernels in a background thread (once; a no-op when compiling is off)."""
-        if not self.compiled or self._compiler is not None:
-            return
-        self._compiler = threading.Thread(target=self._compile, name="edgerecon-compile", daemon=True)
-        self._compiler.start()
-
-    @property
-    def compiling(self) -> bool:
-        """Whether the background compile is under way."""
-        return self._compiler is not None and self._compiler.is_alive()
-
-    def wait_until_compiled(self, timeout: float | None = None) -> bool:
-        """Block until the background compile is done (True) or ``timeout`` seconds pass (False)."""
-        return self._ready.wait(timeout)
-
-    def _compile(self) -> None:
-        started = time.perf_counter()
-        try:
-            _compile_job_paths()
-        except Exception:  # a bug, not the compiler's failure (that falls back): run eagerly, say why
-            log.exception("compiling the kernels failed; running the eager kernels")
-            self.compiled = False
-        finally:
-            self._ready.set()
-        log.info("kernels compiled in %.1f s", time.perf_counter() - started)
-
-
-def _compile_job_paths() -> None:
-    """Call every kernel the way a job does, on a tiny network: a fit's step (f, ∇f, Δf with the
-    training's matrix dtype, and backward) and an extraction (no gradients, float32, Δf at every
-    row or none). A call that differs from these compiles when it first comes, as without
-    ``background``."""
-    from core.fit import matmul_dtype_for  # fit imports this module
-
-    model = ImplicitNetwork(width=8, depth=2)
-    x = torch.rand(64, 3) - 0.5
-    f, grad, lap = model.derivatives(x, 32, matmul_dtype_for("auto"))
-    assert lap is not None
-    (f.sum() + grad.sum() + lap.sum()).backward()
-    with torch.no_grad():
-        model(x)
-        model.derivatives(x)
-        model.derivatives(x, laplacian_rows=0)
-
 
 _kernels = _Kernels()
 
 
-def use_compiled_kernels(enabled: bool, background: bool = False) -> None:
-    """Compile the element-wise kernels (True, the default) or run them eagerly, for the whole
-    process; with ``background``, compile them in a thread, starting now (see ``_Kernels``)."""
+def use_compiled_kernels(enabled: bool) -> None:
+    """Compile the element-wise kernels (True, the default) or run them eagerly, for the whole process."""
     _kernels.compiled = enabled
-    _kernels.background = background
-    if enabled and background:
-        _kernels.start_compiling()
-
-
-def compiling() -> bool:
-    """Whether the kernels are being compiled in the background right now."""
-    return _kernels.compiling

@@ -10,9 +10,6 @@ compiled kernels and glibc's default malloc.
 from __future__ import annotations
 
 import ctypes
-import os
-import sys
-from typing import NoReturn
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # from glibc's malloc.h
 
@@ -20,11 +17,9 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # from glibc's malloc.h
 def configure(*, compile: bool, threads: int | None = None, tune_malloc: bool = True) -> None:
     """Set up this process for fitting.
 
-    ``compile``: compile the network's element-wise kernels with ``torch.compile``, starting now in
-    a background thread while the eager kernels serve (25-45 s on a fresh install, about 10 s
-    from torch's disk cache; a job's first step does not wait for it), or run them eagerly.
-    ``threads``: torch's thread count (None leaves it).
-    ``tune_malloc``: keep freed memory for reuse (``keep_freed_memory``).
+    ``compile``: compile the network's element-wise kernels with ``torch.compile`` at their first
+    use (about 10 s, cached on disk), or run them eagerly. ``threads``: torch's thread count (None
+    leaves it). ``tune_malloc``: keep freed memory for reuse (``keep_freed_memory``).
     """
     import torch
 
@@ -32,7 +27,7 @@ def configure(*, compile: bool, threads: int | None = None, tune_malloc: bool = 
 
     if threads is not None:
         torch.set_num_threads(threads)
-    use_compiled_kernels(compile, background=compile)
+    use_compiled_kernels(compile)
     if tune_malloc:
         keep_freed_memory()
 
@@ -49,19 +44,3 @@ def keep_freed_memory() -> None:
         return
     libc.mallopt(_M_MMAP_THRESHOLD, 32 * 1024 * 1024)
     libc.mallopt(_M_TRIM_THRESHOLD, 1024 * 1024 * 1024)
-
-
-def exit_process(code: int) -> NoReturn:
-    """Exit the program with ``code``: at once (``os._exit``, after flushing its output) while the
-    kernels are still being compiled in the background, normally otherwise.
-
-    A compile cannot be stopped, waiting for it can take a minute (a bad input is refused within a
-    second of the start), and the interpreter's shutdown under it sometimes aborts the process
-    (``std::terminate`` in torch, exit status 134).
-    """
-    network = sys.modules.get("core.network")
-    if network is not None and network.compiling():
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    sys.exit(code)

@@ -154,13 +154,5 @@ def _fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def run() -> None:
-    """The console script: ``main``, then exit (``core.runtime.exit_process``: at once while the
-    kernels still compile in the background)."""
-    from core.runtime import exit_process
-
-    exit_process(main())
-
-
 if __name__ == "__main__":
-    run()
+    sys.exit(main())

@@ -33,9 +33,10 @@ EXAMPLE_CLOUD = ROOT / "examples" / "cube.ply"
 TINY = {"iterations": 30, "resolution": 32, "width": 32, "depth": 2, "batch_points": 256}
 # A fit that runs until it is canceled (about 20 ms a step).
 ENDLESS = {"iterations": 100_000, "resolution": 32, "width": 16, "depth": 1, "batch_points": 128}
-# Settings that keep test processes light: eager kernels (nothing compiled), one thread, fast heartbeats.
+# Settings that keep test processes light: eager kernels, no warm-up, one thread, fast heartbeats.
 TEST_ENV = {
     "EDGERECON_COMPILE": "0",
+    "EDGERECON_WORKER_WARMUP": "0",
     "EDGERECON_WORKER_THREADS": "1",
     "OMP_NUM_THREADS": "1",
     "EDGERECON_HEARTBEAT_TTL": "3",

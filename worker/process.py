@@ -3,8 +3,8 @@
 Why a SimpleWorker, which runs each job in the worker process itself, rather than rq's default
 Worker, which forks a "work horse" per job: torch's OpenMP thread pool is not fork-safe, and a
 work horse forked before torch is loaded would pay the torch import and the torch.compile warm-up
-(seconds) on every job. So each worker process imports torch once, sets its thread count, starts
-compiling the kernels in the background, and then runs jobs one after another. What the forking Worker
+(seconds) on every job. So each worker process imports torch once, sets its thread count, compiles
+the kernels on a tiny warm-up fit, and then runs jobs one after another. What the forking Worker
 gave for free is rebuilt on the job's record (``worker.store``):
 
 - cancel: the job's progress writes (a few per second) find the status changed to ``canceled`` and
@@ -111,16 +111,25 @@ def main() -> int:
 
 
 def prepare_torch(settings: Settings) -> None:
-    """Import torch and core once and configure them; the kernels compile in the background."""
+    """Import torch and core once, configure them, and (optionally) compile on a tiny fit."""
     from core.runtime import configure
 
     configure(compile=settings.compile, threads=settings.torch_threads())
     import torch
 
+    from core.errors import EdgereconError
+    from core.params import FitParams
+    from core.reconstruct import reconstruct
+    from evaluation.shapes import sample_shape
+
+    if settings.worker_warmup:
+        log.info("warming up (torch.compile of the network's kernels)...")
+        try:
+            reconstruct(sample_shape("sphere", n_points=400).points, FitParams(iterations=2, resolution=32))
+        except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
+            log.info("warm-up fit: %s", error)
     log.info("torch ready: %d thread(s)", torch.get_num_threads())
 
 
 if __name__ == "__main__":
-    from core.runtime import exit_process
-
-    exit_process(main())
+    sys.exit(main())

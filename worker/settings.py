@@ -98,11 +98,13 @@ class Settings(BaseSettings):
     worker_nice: int = Field(
         10, ge=0, le=19, description="added niceness of worker processes, so fits yield the CPU to the API's requests"
     )
+    worker_warmup: bool = Field(
+        True, description="fit a tiny cloud at worker start so the first job pays no compile time"
+    )
 
     # The fitting core, in workers and in `edgerecon fit` (core.runtime.configure).
     compile: bool = Field(
-        True,
-        description="compile the network's kernels with torch.compile, in the background from the start (0: eager)",
+        True, description="compile the network's kernels with torch.compile (0: run them eagerly, no compile time)"
     )
 
     # Live progress (GET /v1/jobs/{id}/events), per API process.

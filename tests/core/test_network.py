@@ -9,7 +9,6 @@ are small, and two OpenMP threads on a shared two-core machine can run 10-50x sl
 from __future__ import annotations
 
 import logging
-import threading
 
 import pytest
 import torch
@@ -252,55 +251,3 @@ def test_bfloat16_matmuls_stay_close_to_float32(kernels, rows):
 
     cosine = torch.nn.functional.cosine_similarity(gradients(exact), gradients(rough), dim=0)
     assert cosine > 0.995
-
-
-def _compile_held_until(release: threading.Event, compiled_calls: list[str]):
-    """A stand-in for torch.compile whose functions wait for ``release`` on their first call in
-    the compiling thread (the compiler at work) and record every call made through them."""
-
-    def slow_compile(function, **kwargs):
-        def call(*args):
-            if threading.current_thread().name == "edgerecon-compile":
-                assert release.wait(30), "the test never released the compiler"
-            compiled_calls.append(threading.current_thread().name)
-            return function(*args)
-
-        return call
-
-    return slow_compile
-
-
-def test_compiling_in_the_background_leaves_the_first_steps_to_the_eager_kernels(monkeypatch):
-    release, compiled_calls = threading.Event(), []
-    monkeypatch.setattr(torch, "compile", _compile_held_until(release, compiled_calls))
-    monkeypatch.setattr(network, "_kernels", network._Kernels())
-    network.use_compiled_kernels(True, background=True)
-    try:
-        # The compiler is held: the fit's steps run now, eagerly, with exact values.
-        for _ in range(3):
-            check_against_reference(random_network(2, 16, 100.0), random_points(), SUBSET, 1e-8, 1e-8)
-        assert "MainThread" not in compiled_calls
-        assert not network._kernels.wait_until_compiled(timeout=0.05)
-    finally:
-        release.set()
-    assert network._kernels.wait_until_compiled(timeout=30)
-    # Every kernel of a fit's step and an extraction went through the compiler...
-    assert set(network._kernels._functions) == set(network._Kernels._eager)
-    # ...and from now on every thread uses the compiled kernels, still exact.
-    check_against_reference(random_network(2, 16, 100.0), random_points(), SUBSET, 1e-8, 1e-8)
-    assert "MainThread" in compiled_calls
-    assert not network._kernels.fell_back
-
-
-def test_compiling_in_the_background_for_real_gives_the_kernels_a_job_uses(monkeypatch):
-    monkeypatch.setattr(network, "_kernels", network._Kernels())
-    network.use_compiled_kernels(True, background=True)
-    assert network._kernels.wait_until_compiled(timeout=300)
-    assert set(network._kernels._functions) == set(network._Kernels._eager)
-    assert not network._kernels.fell_back, "torch.compile failed (see the log)"
-    model = random_network(2, 16, 100.0, dtype=torch.float32)
-    x = random_points(dtype=torch.float32)
-    f, grad, lap = model.derivatives(x)
-    reference = derivatives_autograd(model, x)
-    for fast, slow in zip((f, grad, lap), reference):
-        torch.testing.assert_close(fast, slow, rtol=1e-4, atol=1e-4)

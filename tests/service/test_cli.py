@@ -173,7 +173,6 @@ def test_failure_after_fitting_leaves_no_staging_folder(tmp_path, monkeypatch, c
 
     monkeypatch.setenv("EDGERECON_COMPILE", "0")  # the command configures the process: eager kernels
     monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)  # restored afterwards
-    monkeypatch.setattr(network._kernels, "background", network._kernels.background)
     (tmp_path / "out").write_text("in the way")
     tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
     code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), *tiny])
@@ -193,7 +192,6 @@ def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_pa
 
     monkeypatch.setenv("EDGERECON_COMPILE", "0")
     monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
-    monkeypatch.setattr(network._kernels, "background", network._kernels.background)
     tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
     code = cli.main(
         ["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--format", "ply,STL, glb,obj", "--preview", *tiny]

@@ -158,13 +158,15 @@ def test_serve_keeps_every_job_across_a_sigkill_and_brings_its_redis_back_within
         stop_process(process, signal.SIGKILL)
 
 
-def test_serve_uses_redis_url_when_set(tmp_path, redis_server):
+def test_serve_uses_redis_url_when_set_and_its_worker_warms_up(tmp_path, redis_server):
+    # This worker also runs its warm-up fit (with eager kernels, to stay cheap).
     process, _ = _serve(
         tmp_path,
         workers=1,
         REDIS_URL=redis_server.url,
         EDGERECON_KEY_PREFIX="serve-test",
         EDGERECON_QUEUE="serve-test",
+        EDGERECON_WORKER_WARMUP="1",
     )
     try:
         family = psutil.Process(process.pid).children(recursive=True)
