@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from core import sampling
 from core.errors import Cancelled
 from core.fit import fit
 from core.losses import free_space_loss, laplacian_loss
@@ -88,6 +89,16 @@ def test_free_space_of_an_open_sheet_has_no_inside():
     sheet = np.c_[rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0, 0.002, 3000)]
     space = FreeSpace(sheet)
     assert (space.sign_grid >= 0).all()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_neighbour_distances_are_the_brute_force_ones_on_any_number_of_threads(monkeypatch, threads):
+    monkeypatch.setattr(sampling, "QUERY_CHUNK", 700)  # several chunks
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    points = np.random.default_rng(3).normal(size=(2000, 3))
+    found = sampling.neighbour_distances(sampling.build_tree(points), points, [0, 1, 4, 50])
+    brute = np.sort(np.linalg.norm(points[:, None] - points[None], axis=2), axis=1)[:, [0, 1, 4, 50]]
+    np.testing.assert_allclose(found, brute, rtol=1e-12, atol=1e-12)
 
 
 def test_eikonal_samples_are_near_points_then_uniform_in_the_box():
