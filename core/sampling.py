@@ -55,9 +55,13 @@ def polled(work: Callable[[], T], should_cancel: CancelCheck | None) -> T:
 
 
 def build_tree(points: np.ndarray, should_cancel: CancelCheck | None = None) -> cKDTree:
-    """The k-d tree of ``points`` (sliding midpoint: builds twice as fast as a balanced one, and
-    answers the same), built while ``should_cancel`` is polled."""
-    return polled(lambda: cKDTree(points, balanced_tree=False), should_cancel)
+    """The k-d tree of ``points``, built while ``should_cancel`` is polled.
+
+    Balanced (median splits): it builds in 0.56 s at 1 M points where a sliding-midpoint tree takes
+    0.39 s, but it finds the nearest point of a sample far from the cloud five times faster (12 ms
+    against 62 ms for the 128 uniform samples of a step at 1 M points; the same at 16 k), and every
+    step asks that of the free-space term. Both give the same, exact distances."""
+    return polled(lambda: cKDTree(points, balanced_tree=True), should_cancel)
 
 
 def neighbour_distances(
