@@ -18,8 +18,9 @@ def configure(*, compile: bool, threads: int | None = None, tune_malloc: bool = 
     """Set up this process for fitting.
 
     ``compile``: compile the network's element-wise kernels with ``torch.compile`` at their first
-    use (about 10 s, cached on disk), or run them eagerly. ``threads``: torch's thread count (None
-    leaves it). ``tune_malloc``: keep freed memory for reuse (``keep_freed_memory``).
+    use (25-45 s the first time on a machine, about 5 s from the disk cache), or run them
+    eagerly. ``threads``: torch's thread count (None leaves it). ``tune_malloc``: keep freed
+    memory for reuse (``keep_freed_memory``).
     """
     import torch
 
