@@ -61,7 +61,7 @@ def _peak_rss(pid: int) -> int:
 
 
 @pytest.mark.parametrize("name", UPLOADS)
-def test_an_upload_at_the_limit_costs_the_api_under_300_mb_and_5_s_of_cpu(api, name):
+def test_an_upload_at_the_limit_costs_the_api_under_300_mb_and_10_s_of_cpu(api, name):
     content = UPLOADS[name]()
     assert 48 * MiB < len(content) < 64 * MiB
     process = psutil.Process(api.api.pid)
@@ -72,7 +72,10 @@ def test_an_upload_at_the_limit_costs_the_api_under_300_mb_and_5_s_of_cpu(api, n
     assert response.status_code in (202, 400), response.text
     peak = _peak_rss(api.api.pid)
     assert peak < 300 * MiB, f"peak RSS {peak / MiB:.0f} MB"
-    assert cpu < 5, f"{cpu:.1f} s of CPU"
+    # The 5 M ASCII doubles took 2.7 s of CPU on one machine and 5.1 s on another, twice as slow
+    # at everything (its fitting steps too): the bound leaves room for that, not for a parser
+    # that grows worse than linearly (a 64 MB body is read in 1 MB blocks).
+    assert cpu < 10, f"{cpu:.1f} s of CPU"
     if response.status_code == 202:
         assert httpx.delete(api.url + response.headers["location"]).status_code == 204
 
