@@ -76,9 +76,7 @@ def distance_to_curves(points: np.ndarray, curves: list[Curve], spacing: float) 
     ``spacing`` / 50 (the curves are matched at a fifth of their spacing)."""
     if not curves:
         return np.full(len(points), np.inf)
-    dense = np.concatenate(
-        [_resample(c.points, c.left, c.right, c.dihedral, c.convex, spacing / _DENSE).points for c in curves]
-    )
+    dense = np.concatenate([_along(curve.points, spacing / _DENSE)[0] for curve in curves])
     distance, _ = cKDTree(dense).query(points)
     return distance
 
@@ -146,11 +144,17 @@ def _resample(
 ) -> Curve:
     """The polyline ``points`` (k, 3) with per-step ``left``/``right`` normals (k - 1, 3), resampled
     every ``spacing`` or less (both ends kept), each sample taking its step's normals."""
+    samples, step = _along(points, spacing)
+    return Curve(samples, left[step], right[step], dihedral, convex)
+
+
+def _along(points: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Samples (m, 3) every ``spacing`` or less along the polyline ``points`` (k, 3), both ends
+    kept, and the step (segment index, (m,)) each lies on."""
     lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
     along = np.concatenate([[0.0], np.cumsum(lengths)])
     count = max(int(np.ceil(along[-1] / spacing)), 1) + 1
     at = np.linspace(0.0, along[-1], count)
     step = np.clip(np.searchsorted(along, at, side="right") - 1, 0, len(lengths) - 1)
     t = np.clip((at - along[step]) / np.where(lengths[step] > 0, lengths[step], 1.0), 0.0, 1.0)
-    samples = points[step] + t[:, None] * (points[step + 1] - points[step])
-    return Curve(samples, left[step], right[step], dihedral, convex)
+    return points[step] + t[:, None] * (points[step + 1] - points[step]), step

@@ -8,7 +8,7 @@ points or grid nodes there are.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 
 import numpy as np
@@ -37,10 +37,8 @@ def evaluate(
 ) -> np.ndarray:
     """f at ``points`` (n, 3), float32, in chunks; ``should_cancel`` is polled before each."""
     values = np.empty(len(points), dtype=np.float32)
-    for start in range(0, len(points), chunk):
-        check_cancel(should_cancel)
-        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
-        values[start : start + chunk] = model(batch).numpy()
+    for rows, batch in _chunks(points, chunk, should_cancel):
+        values[rows] = model(batch).numpy()
     return values
 
 
@@ -51,13 +49,20 @@ def normals_and_laplacian(
     """Unit normals ∇f/‖∇f‖ (outward, since f < 0 inside) and Δf at ``points``, in chunks."""
     normals = np.empty((len(points), 3), dtype=np.float32)
     laplacian = np.empty(len(points), dtype=np.float32)
+    for rows, batch in _chunks(points, chunk, should_cancel):
+        _, grad, lap = model.derivatives(batch)
+        normals[rows] = torch.nn.functional.normalize(grad, dim=1).numpy()
+        laplacian[rows] = lap.numpy()
+    return normals, laplacian
+
+
+def _chunks(points: np.ndarray, chunk: int, should_cancel: CancelCheck | None) -> Iterator[tuple[slice, torch.Tensor]]:
+    """The rows of ``points`` (n, 3), ``chunk`` at a time, as float32 tensors with their slice;
+    ``should_cancel`` is polled before each."""
     for start in range(0, len(points), chunk):
         check_cancel(should_cancel)
-        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
-        _, grad, lap = model.derivatives(batch)
-        normals[start : start + chunk] = torch.nn.functional.normalize(grad, dim=1).numpy()
-        laplacian[start : start + chunk] = lap.numpy()
-    return normals, laplacian
+        rows = slice(start, start + chunk)
+        yield rows, torch.as_tensor(points[rows], dtype=torch.float32)
 
 
 def extract_mesh(
@@ -91,11 +96,9 @@ def derivatives(
     """f (n,) and ∇f (n, 3) at ``points`` (n, 3), float64, in chunks: the network's exact values."""
     values = np.empty(len(points), dtype=np.float64)
     grads = np.empty((len(points), 3), dtype=np.float64)
-    for start in range(0, len(points), chunk):
-        check_cancel(should_cancel)
-        batch = torch.as_tensor(points[start : start + chunk], dtype=torch.float32)
+    for rows, batch in _chunks(points, chunk, should_cancel):
         f, grad, _ = model.derivatives(batch, laplacian_rows=0)
-        values[start : start + chunk], grads[start : start + chunk] = f.numpy(), grad.numpy()
+        values[rows], grads[rows] = f.numpy(), grad.numpy()
     return values, grads
 
 
