@@ -71,13 +71,16 @@ def edge_curves(mesh: trimesh.Trimesh, angle: float, min_length: float, spacing:
     return curves
 
 
-def distance_to_curves(points: np.ndarray, curves: list[Curve], spacing: float) -> np.ndarray:
-    """Each point's (n, 3) distance to the nearest curve (inf without curves), to within
-    ``spacing`` / 50 (the curves are matched at a fifth of their spacing)."""
+def distance_to_curves(
+    points: np.ndarray, curves: list[Curve], spacing: float, within: float = np.inf, workers: int = 1
+) -> np.ndarray:
+    """Each point's (n, 3) distance to the nearest curve, to within ``spacing`` / 50 (the curves are
+    matched at a fifth of their spacing); inf without curves and beyond ``within``, which ends each
+    search early (at 1 M points, 1 s instead of 6 when most points lie far from every edge)."""
     if not curves:
         return np.full(len(points), np.inf)
     dense = np.concatenate([_along(curve.points, spacing / _DENSE)[0] for curve in curves])
-    distance, _ = cKDTree(dense).query(points)
+    distance, _ = cKDTree(dense).query(points, distance_upper_bound=within, workers=workers)
     return distance
 
 

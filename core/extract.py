@@ -56,6 +56,20 @@ def normals_and_laplacian(
     return normals, laplacian
 
 
+@torch.no_grad()
+def unit_normals(
+    model: ImplicitNetwork, points: np.ndarray, chunk: int = 16_384, should_cancel: CancelCheck | None = None
+) -> np.ndarray:
+    """Unit normals ∇f/‖∇f‖ at ``points`` (n, 3), float32, without the Laplacian: a fifth fewer
+    rows in every product and none of its element-wise work (at 1 M points, the extraction's
+    largest part)."""
+    result = np.empty((len(points), 3), dtype=np.float32)
+    for rows, batch in _chunks(points, chunk, should_cancel):
+        _, grad, _ = model.derivatives(batch, laplacian_rows=0)
+        result[rows] = torch.nn.functional.normalize(grad, dim=1).numpy()
+    return result
+
+
 def _chunks(points: np.ndarray, chunk: int, should_cancel: CancelCheck | None) -> Iterator[tuple[slice, torch.Tensor]]:
     """The rows of ``points`` (n, 3), ``chunk`` at a time, as float32 tensors with their slice;
     ``should_cancel`` is polled before each."""

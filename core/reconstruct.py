@@ -11,11 +11,12 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 
 from core.curves import Curve, distance_to_curves, edge_curves
 from core.errors import CancelCheck
-from core.extract import extract_mesh, normals_and_laplacian
+from core.extract import extract_mesh, normals_and_laplacian, unit_normals
 from core.fit import fit
 from core.frame import Frame
 from core.mesh_formats import mesh_file
@@ -133,13 +134,18 @@ def reconstruct(
         progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
     low, high = unit.min(axis=0), unit.max(axis=0)
     mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
-    normals, laplacian = normals_and_laplacian(model, unit, should_cancel=should_cancel)
     curves: list[Curve] = []
     if params.extraction == "sharp":
+        normals = unit_normals(model, unit, should_cancel=should_cancel)
         curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
-        edges = np.flatnonzero(distance_to_curves(unit, curves, CURVE_SPACING) <= params.edge_width)
+        near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())
+        edges = np.flatnonzero(near <= params.edge_width)
+        # Δf is reported at the edge points only, so only they pay for it.
+        _, edge_laplacian = normals_and_laplacian(model, unit[edges], should_cancel=should_cancel)
     else:
+        normals, laplacian = normals_and_laplacian(model, unit, should_cancel=should_cancel)
         edges = np.flatnonzero(np.abs(laplacian) > params.tau)
+        edge_laplacian = laplacian[edges]
     mesh.vertices = frame.from_unit(mesh.vertices)
     for curve in curves:
         curve.points = frame.from_unit(curve.points)
@@ -150,7 +156,7 @@ def reconstruct(
         normals=normals,
         edge_indices=edges,
         edge_points=points[edges],
-        edge_laplacian=np.abs(laplacian[edges]),
+        edge_laplacian=np.abs(edge_laplacian),
         tau=params.tau,
         points=points,
         curves=curves,

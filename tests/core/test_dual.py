@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.curves import edge_curves
+from core.curves import _along, distance_to_curves, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
 from evaluation.metrics import distance_to_mesh, surface_distances
@@ -166,6 +166,21 @@ def test_the_curves_of_a_box_are_its_twelve_edges():
         on_faces = np.sum(np.abs(np.abs(curve.points) - HALF) < 0.1 * CELL, axis=1)
         assert (on_faces >= 2).all()  # ... on two faces at once: on an edge
         assert np.linalg.norm(np.diff(curve.points, axis=0), axis=1).max() <= 0.005 + 1e-9
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_distance_to_curves_is_the_distance_to_the_box_edges_up_to_the_bound(workers):
+    curves = edge_curves(contour("box"), 30.0, 0.02, 0.005)
+    points = np.random.default_rng(5).uniform(-0.4, 0.4, (4000, 3))
+    dense = np.concatenate([_along(c.points, 0.001)[0] for c in curves])
+    brute = np.linalg.norm(points[:, None] - dense[None], axis=2).min(axis=1)
+    assert brute.min() < 0.02 < brute.max()
+    np.testing.assert_allclose(distance_to_curves(points, curves, 0.005), brute, atol=1e-12)
+    bounded = distance_to_curves(points, curves, 0.005, within=0.05, workers=workers)
+    near = brute <= 0.05
+    np.testing.assert_allclose(bounded[near], brute[near], atol=1e-12)
+    assert np.isinf(bounded[~near]).all()
+    assert np.isinf(distance_to_curves(points, [], 0.005)).all()
 
 
 def test_the_curves_of_a_wedge_follow_its_nine_edges_including_the_acute_ridge():

@@ -17,7 +17,7 @@ import torch
 
 from core import extract
 from core.errors import EmptySurfaceError
-from core.extract import GRID_MARGIN, evaluate, extract_mesh, normals_and_laplacian
+from core.extract import GRID_MARGIN, evaluate, extract_mesh, normals_and_laplacian, unit_normals
 from core.network import ImplicitNetwork, derivatives_autograd
 
 UNIT_LOW, UNIT_HIGH = np.full(3, -0.5), np.full(3, 0.5)
@@ -179,6 +179,15 @@ def test_normals_and_laplacian_match_the_network():
     lap = lap.detach().numpy()
     assert np.abs(lap).max() > 1.0  # a real Laplacian, not zeros
     np.testing.assert_allclose(laplacian, lap, atol=1e-4 * np.abs(lap).max())
+
+
+def test_unit_normals_without_the_laplacian_are_the_same_normals():
+    model = network("blob")
+    points = box_points(3000, seed=4)
+    normals, _ = normals_and_laplacian(model, points)
+    alone = unit_normals(model, points, chunk=501)
+    assert alone.shape == (len(points), 3) and alone.dtype == np.float32
+    np.testing.assert_allclose(alone, normals, rtol=0, atol=1e-6)
 
 
 def test_normals_point_outward_on_a_sphere():
