@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+from core import fit as fit_module
 from core import sampling
 from core.errors import Cancelled
-from core.fit import fit
+from core.fit import fit, fit_rows
 from core.losses import free_space_loss, laplacian_loss
 from core.params import FitParams
 from core.progress import Progress, Stage
@@ -123,6 +124,19 @@ def test_fit_is_deterministic_for_a_seed():
     for a, b in zip(first.parameters(), again.parameters()):
         assert torch.equal(a, b)
     assert not all(torch.equal(a, c) for a, c in zip(first.parameters(), other.parameters()))
+
+
+def test_a_cloud_larger_than_the_fit_takes_is_fitted_to_its_seeded_subsample(monkeypatch):
+    monkeypatch.setattr(fit_module, "FIT_POINTS", 600)
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    params = FitParams(iterations=3, seed=3, precision="float32", **SMALL)
+    rows = fit_rows(len(points), params.seed)
+    assert len(rows) == 600 and len(np.unique(rows)) == 600 and np.all(np.diff(rows) > 0)
+    assert np.array_equal(fit_rows(599, 3), np.arange(599))
+    assert not np.array_equal(rows, fit_rows(len(points), 4))
+    whole, subsample = fit(points, params), fit(points[rows], params)
+    for a, b in zip(whole.parameters(), subsample.parameters()):
+        assert torch.equal(a, b)
 
 
 def test_progress_reports_every_step_with_each_term():
