@@ -178,11 +178,25 @@ class TriangleTree:
         distance to each kept piece lowers the best. Pairs are processed in batches of at most
         ``max_pairs``, depth first, so memory stays bounded whatever the points.
         """
+        return self._search(points, max_pairs, track=False)[0]
+
+    def nearest(self, points: np.ndarray, max_pairs: int = MAX_PAIRS) -> tuple[np.ndarray, np.ndarray]:
+        """The exact distance (n,) from each of the (n, 3) points to the nearest triangle, and the
+        corners (n, 3, 3) of the piece of it that is nearest (in the triangle's plane, with its
+        winding), found as ``distance`` finds the distance."""
+        distance, piece = self._search(points, max_pairs, track=True)
+        if self.centroid_tree is None:
+            return distance, np.full((len(distance), 3, 3), np.nan)
+        return distance, np.stack([self.a[piece], self.b[piece], self.c[piece]], axis=1)
+
+    def _search(self, points: np.ndarray, max_pairs: int, track: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The best distance of each point and, if ``track``, the piece that gives it."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if self.centroid_tree is None or len(points) == 0:
-            return np.full(len(points), np.inf)
+            return np.full(len(points), np.inf), np.zeros(len(points), dtype=np.int64)
         _, nearest = self.centroid_tree.query(points)
         best = point_triangle_distance(points, self.a[nearest], self.b[nearest], self.c[nearest])
+        piece = np.asarray(nearest, dtype=np.int64)
         batch = max(1, max_pairs // 2)  # a batch of pairs has at most twice as many children
         everything = np.arange(len(points))
         stack = _batches(everything, np.zeros_like(everything), len(self.lows) - 1, batch)
@@ -190,6 +204,13 @@ class TriangleTree:
             point, box, level = stack.pop()
             if level == 0:
                 exact = point_triangle_distance(points[point], self.a[box], self.b[box], self.c[box])
+                if track:
+                    # Each point's nearest piece of this batch: the first of its pairs by distance.
+                    order = np.lexsort((exact, point))
+                    _, first = np.unique(point[order], return_index=True)
+                    chosen = order[first]
+                    better = exact[chosen] < best[point[chosen]]
+                    piece[point[chosen[better]]] = box[chosen[better]]
                 np.minimum.at(best, point, exact)
                 continue
             # The two children of every box, one level down; keep those that may hold a closer piece.
@@ -201,7 +222,7 @@ class TriangleTree:
             np.maximum(gap, 0.0, out=gap)
             near = _dot(gap, gap) < best[point] ** 2
             stack.extend(_batches(point[near], box[near], level, batch))
-        return best
+        return best, piece
 
 
 def split_triangles(corners: np.ndarray, length: float, max_count: int = MAX_PIECES) -> np.ndarray:

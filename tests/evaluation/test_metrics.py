@@ -6,6 +6,7 @@ import trimesh
 from scipy.integrate import dblquad
 
 from evaluation.metrics import (
+    TriangleTree,
     distance_to_mesh,
     edge_chamfer,
     edge_scores,
@@ -111,6 +112,26 @@ def test_distance_to_mesh_matches_brute_force(max_pairs):
     expected = reference_distance(points[:, None], a[None], b[None], c[None]).min(axis=1)
     distance = distance_to_mesh(points, vertices, faces, max_pairs=max_pairs)
     assert np.allclose(distance, expected, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("max_pairs", [500_000, 50])
+def test_nearest_piece_lies_in_the_brute_force_nearest_triangle(max_pairs):
+    rng = np.random.default_rng(6)
+    a, b, c = (corners[50:] for corners in random_triangles(rng, 200))  # the degenerate ones have no normal
+    vertices, faces = np.concatenate([a, b, c]), np.arange(450).reshape(3, 150).T
+    points = rng.normal(size=(2000, 3))
+    all_distances = reference_distance(points[:, None], a[None], b[None], c[None])
+    ranked = np.sort(all_distances, axis=1)
+    clear = ranked[:, 1] - ranked[:, 0] > 1e-9  # a unique nearest triangle
+    expected = np.cross(b - a, c - a)[all_distances.argmin(axis=1)]
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    distance, corners = TriangleTree(vertices, faces).nearest(points, max_pairs=max_pairs)
+    assert np.allclose(distance, ranked[:, 0], rtol=1e-12, atol=1e-13)
+    assert np.allclose(point_triangle_distance(points, *(corners[:, i] for i in range(3))), distance, atol=1e-13)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    assert clear.mean() > 0.95
+    np.testing.assert_allclose(normal[clear], expected[clear], atol=1e-9)
 
 
 def test_distance_to_mesh_with_many_equally_near_triangles():
