@@ -286,7 +286,7 @@ def steps(overrides: dict, repeats: int = 30) -> str:
     cloud = torch.as_tensor(points, dtype=torch.float32)
     scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
     free_space = FreeSpace(points)
-    batch, samples = draw_batch(cloud, scales, params.batch_points, torch.Generator().manual_seed(0))
+    batch, samples, _ = draw_batch(cloud, scales, params.batch_points, torch.Generator().manual_seed(0))
     variants = {
         "eikonal only (λ2 = 0)": params.model_copy(update={"lambda2": 0.0}),
         "with the Laplacian term": params,

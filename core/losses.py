@@ -1,4 +1,5 @@
-"""The loss terms: L = L_vanish + λ1·L_eikonal + λ2·L_laplacian (the paper's), + λ3·L_free_space."""
+"""The loss terms: L = L_vanish + λ1·L_eikonal + λ2·L_laplacian (the paper's), + λ3·L_free_space
++ λ4·L_normal."""
 
 from __future__ import annotations
 
@@ -14,6 +15,27 @@ def vanish_loss(f_points: Tensor) -> Tensor:
 def eikonal_loss(grad: Tensor) -> Tensor:
     """Mean (‖∇f‖ - 1)² over the samples: f is a distance function."""
     return (grad.norm(dim=1) - 1).square().mean()
+
+
+def normal_loss(grad_points: Tensor, normals: Tensor, outward: Tensor, edges: Tensor) -> Tensor:
+    """Mean 1 - cos of the angle between ∇f and the cloud's own normal at the input points off the
+    edges (``edges``: DES's mask, or empty to keep every point); where the normal's orientation is
+    unknown (``outward`` False), 1 - |cos|, either way along it.
+
+    ``normals`` (n, 3) come from ``core.sampling.plane_normals``, oriented where the free-space map
+    tells (``FreeSpace.outward``). Without this term nothing tells a plug from a hole: a thin plate's
+    small hole filled with solid costs the vanish term a little at the points of its wall, which
+    then lie inside, and meets every other term; but f's gradient there runs along the hole's axis,
+    across the wall's normal. The orientation keeps the term from holding a surface the wrong way
+    round (a pocket's floor with a thin void under it, facing down); the edge points are left out,
+    as from the Laplacian term, since their planes average two faces.
+    """
+    keep = ~edges if edges.numel() else torch.ones(len(normals), dtype=torch.bool)
+    if not keep.any():
+        return grad_points.sum() * 0.0
+    grad, normals, outward = grad_points[keep], normals[keep], outward[keep]
+    cosine = (grad * normals).sum(dim=1) / grad.norm(dim=1).clamp_min(1e-12)
+    return (1 - torch.where(outward, cosine, cosine.abs())).mean()
 
 
 def laplacian_loss(

@@ -10,7 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 class FitParams(BaseModel):
     """Everything a fit and its extraction depend on.
 
-    The loss is ``L_vanish + lambda1 * L_eikonal + lambda2 * L_laplacian + lambda3 * L_free_space``
+    The loss is ``L_vanish + lambda1 * L_eikonal + lambda2 * L_laplacian + lambda3 * L_free_space
+    + lambda4 * L_normal``
     (see ``core.losses``). ``L_laplacian`` is the *mean* penalty of Δf over the non-edge points of
     the batch (the paper writes a sum; a mean keeps ``lambda2`` independent of the number of
     points). ``tau`` and every length are in the normalised frame, where the cloud is centred and
@@ -47,6 +48,12 @@ class FitParams(BaseModel):
         ge=0,
         le=1000,
         description="weight of the free-space term, which keeps the surface out of empty space (0: off)",
+    )
+    lambda4: float = Field(
+        0.5,
+        ge=0,
+        le=1000,
+        description="weight of the normal term: ∇f at each point across the plane of its nearest points (0: off)",
     )
     extraction: Literal["sharp", "mc"] = Field(
         "sharp",

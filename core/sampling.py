@@ -23,6 +23,15 @@ QUERY_CHUNK = 16_384
 # (from the spacing of a cloud of millions of points) cost gigabytes and tens of seconds in
 # calls that cannot be interrupted, and the sign is unknown near the points anyway.
 MAX_GRID_CELLS = 256
+# The cloud's own normals (the normal term): planes through each point's 16 nearest points, at the
+# density of 16,384 points (the sample shapes'), where a plane spans about 0.02 and averages the noise
+# of 16 points; 8 neighbours gave noisier planes, 32 wider ones that bend over small holes.
+PLANE_NEIGHBOURS = 16
+PLANE_POINTS = 16_384
+# How far to each side of a point (in free-space voxels) its normal's orientation is read: past the
+# shell of dilated voxels around the points, whose sign is unknown (on the sample shapes: 94 to 100 %
+# of the points of the CAD parts oriented, 81 % of featuretype's, nearly all wrong ones on edges).
+ORIENT_VOXELS = 3
 # Seconds between cancel checks while a call that cannot be interrupted runs in a thread.
 _POLL_SECONDS = 0.05
 
@@ -97,12 +106,39 @@ def eikonal_samples(batch: Tensor, scales: Tensor, n_uniform: int, generator: to
     return torch.cat([near, box])
 
 
-def draw_batch(cloud: Tensor, scales: Tensor, size: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """One step's inputs: ``size`` input points drawn at random, and their eikonal samples (near
-    the first half of them, then ``size // 8`` uniform in the box)."""
+def draw_batch(cloud: Tensor, scales: Tensor, size: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """One step's inputs: ``size`` input points drawn at random, their eikonal samples (near the
+    first half of them, then ``size // 8`` uniform in the box), and the rows of the points drawn."""
     index = torch.randint(len(cloud), (size,), generator=generator)
     near = index[: max(size // 2, 1)]
-    return cloud[index], eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator)
+    return cloud[index], eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator), index
+
+
+def plane_normals(points: np.ndarray, seed: int = 0, should_cancel: CancelCheck | None = None) -> np.ndarray:
+    """Unoriented unit normals (N, 3): for each point, the normal of the plane through the
+    ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread).
+
+    The planes are fitted at the density of ``PLANE_POINTS`` points (a seeded subsample of a larger
+    cloud, each point taking the normal of its nearest subsample point), so that a plane spans the
+    same area, and averages away the same noise, however dense the cloud.
+    """
+    sample = points
+    if len(points) > PLANE_POINTS:
+        sample = points[np.sort(np.random.default_rng(seed).choice(len(points), PLANE_POINTS, replace=False))]
+    tree = build_tree(sample, should_cancel)
+    workers = torch.get_num_threads()
+    _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=workers)
+    around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
+    normals = vectors[:, :, 0]
+    if sample is points:
+        return normals
+    nearest = np.empty(len(points), dtype=np.int64)
+    chunk = 8 * QUERY_CHUNK  # k = 1: a fraction of the time of the neighbour queries' chunks
+    for start in range(0, len(points), chunk):
+        check_cancel(should_cancel)
+        _, nearest[start : start + chunk] = tree.query(points[start : start + chunk], workers=workers)
+    return normals[nearest]
 
 
 class FreeSpace:
@@ -142,6 +178,20 @@ class FreeSpace:
         sign = np.where(enclosed, 0, 1).astype(np.int8)
         sign[enclosed & ~shell] = -1
         self.sign_grid = torch.as_tensor(sign)
+
+    def outward(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Which way each unoriented normal (N, 3) at ``points`` (N, 3) points out of the solid
+        (N,): +1 along it, -1 against it, 0 unknown. Read from the signs ``ORIENT_VOXELS`` voxels
+        to either side, past the dilated shell around the points: +1 where the side ahead is
+        outside or the side behind inside, and nothing says the reverse (on a thin plate both
+        sides are outside, and the answer is 0)."""
+        step = ORIENT_VOXELS * self.voxel
+        cloud, along = torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(normals, dtype=torch.float32)
+        _, ahead = self.distance_and_sign(cloud + step * along)
+        _, behind = self.distance_and_sign(cloud - step * along)
+        out = (ahead > 0) | (behind < 0)
+        into = (ahead < 0) | (behind > 0)
+        return (out & ~into).numpy().astype(np.int8) - (into & ~out).numpy().astype(np.int8)
 
     def distance_and_sign(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         """The distance from each sample to the nearest input point, and its sign (-1, 0 or +1)."""

@@ -16,7 +16,7 @@ from core import fit as fit_module
 from core import sampling
 from core.errors import Cancelled
 from core.fit import fit, fit_rows
-from core.losses import free_space_loss, laplacian_loss
+from core.losses import free_space_loss, laplacian_loss, normal_loss
 from core.params import FitParams
 from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
@@ -72,7 +72,44 @@ def test_free_space_loss_is_a_hinge_on_distance_and_sign():
     )
 
 
+def test_normal_loss_asks_for_gradients_along_the_normals_off_the_edges_either_way_where_unoriented():
+    normals = torch.tensor([[0.0, 0.0, 1.0]] * 4)
+    grad = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -0.5], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0]], requires_grad=True)
+    none = torch.zeros(0, dtype=torch.bool)
+    unoriented = torch.zeros(4, dtype=torch.bool)
+    expected = (0 + 0 + 1 + (1 - 2**-0.5)) / 4  # parallel, opposite, across, at 45°
+    assert normal_loss(grad, normals, unoriented, none).item() == pytest.approx(expected)
+    oriented = torch.ones(4, dtype=torch.bool)  # now the opposite one costs 2
+    assert normal_loss(grad, normals, oriented, none).item() == pytest.approx(expected + 2 / 4)
+    edges = torch.tensor([False, False, True, False])  # DES's edge points are left out
+    assert normal_loss(grad, normals, unoriented, edges).item() == pytest.approx((1 - 2**-0.5) / 3)
+    normal_loss(grad, normals, unoriented, edges).backward()
+    assert (grad.grad[2] == 0).all() and grad.grad[3].abs().sum() > 0
+    assert normal_loss(grad, normals, unoriented, torch.ones(4, dtype=torch.bool)).item() == 0
+
+
 # --- samples ------------------------------------------------------------------------------------
+
+
+def test_plane_normals_are_the_normals_of_a_noisy_sphere_and_plane():
+    rng = np.random.default_rng(7)
+    sphere = rng.normal(size=(8000, 3))
+    sphere = 0.4 * sphere / np.linalg.norm(sphere, axis=1, keepdims=True) + rng.normal(0, 0.002, (8000, 3))
+    radial = sphere / np.linalg.norm(sphere, axis=1, keepdims=True)
+    cosine = np.abs(np.einsum("ij,ij->i", sampling.plane_normals(sphere), radial))
+    assert np.median(cosine) > np.cos(np.radians(5)) and cosine.min() > np.cos(np.radians(30))
+    plane = np.c_[rng.uniform(-0.5, 0.5, (5000, 2)), rng.normal(0, 0.003, 5000)]
+    assert np.median(np.abs(sampling.plane_normals(plane)[:, 2])) > np.cos(np.radians(5))
+
+
+def test_plane_normals_of_a_dense_cloud_are_those_of_its_nearest_subsample_points(monkeypatch):
+    monkeypatch.setattr(sampling, "PLANE_POINTS", 1000)
+    points = np.random.default_rng(8).normal(size=(5000, 3))
+    normals = sampling.plane_normals(points, seed=2)
+    rows = np.sort(np.random.default_rng(2).choice(5000, 1000, replace=False))
+    on_sample = sampling.plane_normals(points[rows])  # 1000 points: no subsample of its own
+    nearest = np.linalg.norm(points[:, None] - points[rows][None], axis=2).argmin(axis=1)
+    np.testing.assert_array_equal(normals, on_sample[nearest])
 
 
 def test_free_space_knows_inside_from_outside_of_a_closed_cloud():
@@ -85,11 +122,21 @@ def test_free_space_knows_inside_from_outside_of_a_closed_cloud():
     assert 0 < space.margin < 0.05
 
 
-def test_free_space_of_an_open_sheet_has_no_inside():
+def test_free_space_of_an_open_sheet_has_no_inside_and_orients_no_normal():
     rng = np.random.default_rng(0)
     sheet = np.c_[rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0, 0.002, 3000)]
     space = FreeSpace(sheet)
     assert (space.sign_grid >= 0).all()
+    assert (space.outward(sheet, sampling.plane_normals(sheet)) == 0).all()  # outside on both sides
+
+
+def test_free_space_orients_the_normals_of_a_closed_cloud_outward():
+    shape = sample_shape("cube", n_points=6000, seed=1)
+    normals = sampling.plane_normals(shape.points)
+    sides = FreeSpace(shape.points).outward(shape.points, normals)
+    assert np.mean(sides != 0) > 0.95
+    outward = np.einsum("ij,ij->i", normals * sides[:, None], shape.normals)
+    assert (outward[sides != 0] > 0).mean() > 0.995  # the exceptions straddle an edge
 
 
 @pytest.mark.parametrize("threads", [1, 2])
@@ -146,6 +193,7 @@ def test_progress_reports_every_step_with_each_term():
     assert [p.iteration for p in seen] == [1, 2, 3, 4] and {p.total for p in seen} == {4}
     assert {p.stage for p in seen} == {Stage.FITTING}
     assert set(seen[-1].losses) == {"total", "vanish", "eikonal", "laplacian", "free_space"}
+    assert [("normal" in p.losses) for p in seen] == [True, True, False, False]  # the first half only
     assert all(np.isfinite(list(p.losses.values())).all() and 0 <= p.edge_share <= 1 for p in seen)
     seen.clear()
     fit(points, FitParams(iterations=2, lambda2=0, lambda3=0, **SMALL), progress=seen.append)
