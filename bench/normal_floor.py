@@ -26,6 +26,7 @@ import trimesh
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from core.features import unit  # noqa: E402
 from evaluation.metrics import TriangleTree, normal_errors, point_triangle_distance  # noqa: E402
 from evaluation.sample_data import load_points_and_labels  # noqa: E402
 
@@ -37,7 +38,7 @@ def floor_normals(shape_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     points, labels = load_points_and_labels(shape_dir)
     gt = trimesh.load(shape_dir / "gt.ply", force="mesh", process=False)
     distance, corners = TriangleTree(gt.vertices, gt.faces).nearest(points)
-    nearest = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+    nearest = unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
     own = np.einsum("ij,ij->i", nearest, labels["normals_face"]) > np.cos(np.radians(SAME_SURFACE))
     # A point beyond a convex edge is equally near both faces (its nearest point is on the edge).
     # Then the face whose plane is farther is the likelier origin: the noise must have carried the
@@ -50,10 +51,6 @@ def floor_normals(shape_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     other_plane = np.abs(np.einsum("ij,ij->i", nearest, points - corners[:, 0]))
     own |= tied & (own_plane >= other_plane)
     return np.where(own[:, None], labels["normals"], nearest), labels["normals"]
-
-
-def _unit(vectors: np.ndarray) -> np.ndarray:
-    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
 
 
 def main() -> None:

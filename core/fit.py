@@ -13,7 +13,7 @@ from core.losses import eikonal_loss, free_space_loss, laplacian_loss, normal_lo
 from core.network import ImplicitNetwork
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
-from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_normals
+from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_normals, subsample_rows
 
 # The most input points a fit draws its batches from. 1,800 steps of 1,024 points see each of
 # 131,072 points 14 times; beyond that, more points only add set-up (neighbour queries at every
@@ -32,9 +32,7 @@ NORMAL_TERM_SHARE = 0.5
 def fit_rows(count: int, seed: int) -> np.ndarray:
     """The rows of a cloud of ``count`` points that a fit uses, in order: all of them up to
     ``FIT_POINTS``, else ``FIT_POINTS`` of them drawn at random, the same for the same seed."""
-    if count <= FIT_POINTS:
-        return np.arange(count)
-    return np.sort(np.random.default_rng(seed).choice(count, FIT_POINTS, replace=False))
+    return subsample_rows(count, FIT_POINTS, seed)
 
 
 def fit(
@@ -68,7 +66,7 @@ def fit(
     # The normal term's normals, oriented where the free-space map tells, and whether they are.
     cloud_normals = None
     if params.lambda4 > 0:
-        planes = plane_normals(points, params.seed, should_cancel)
+        planes = plane_normals(points, params.seed, should_cancel, tree=tree)
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))

@@ -114,18 +114,33 @@ def draw_batch(cloud: Tensor, scales: Tensor, size: int, generator: torch.Genera
     return cloud[index], eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator), index
 
 
-def plane_normals(points: np.ndarray, seed: int = 0, should_cancel: CancelCheck | None = None) -> np.ndarray:
+def subsample_rows(count: int, limit: int, seed: int) -> np.ndarray:
+    """The rows of ``count`` points to keep, in order: all of them up to ``limit``, else ``limit``
+    of them drawn at random, the same for the same seed."""
+    if count <= limit:
+        return np.arange(count)
+    return np.sort(np.random.default_rng(seed).choice(count, limit, replace=False))
+
+
+def plane_normals(
+    points: np.ndarray,
+    seed: int = 0,
+    should_cancel: CancelCheck | None = None,
+    tree: cKDTree | None = None,
+) -> np.ndarray:
     """Unoriented unit normals (N, 3): for each point, the normal of the plane through the
     ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread).
 
     The planes are fitted at the density of ``PLANE_POINTS`` points (a seeded subsample of a larger
     cloud, each point taking the normal of its nearest subsample point), so that a plane spans the
-    same area, and averages away the same noise, however dense the cloud.
+    same area, and averages away the same noise, however dense the cloud. ``tree``, the k-d tree of
+    ``points``, may be given when the caller has it; it serves when there is no subsample.
     """
     sample = points
     if len(points) > PLANE_POINTS:
-        sample = points[np.sort(np.random.default_rng(seed).choice(len(points), PLANE_POINTS, replace=False))]
-    tree = build_tree(sample, should_cancel)
+        sample = points[subsample_rows(len(points), PLANE_POINTS, seed)]
+        tree = None
+    tree = tree if tree is not None else build_tree(sample, should_cancel)
     workers = torch.get_num_threads()
     _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=workers)
     around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
