@@ -60,13 +60,17 @@ def fit(
     tree = build_tree(points, should_cancel)
     distances = neighbour_distances(tree, points, [1, 4, min(50, len(points) - 1)], should_cancel)
     scales = torch.as_tensor(distances[:, 2], dtype=torch.float32)
+    # The cloud's own (unoriented) normals: the free-space map's walls for an open cloud, and the
+    # normal term's targets.
+    planes = None
+    if params.lambda3 > 0 or params.lambda4 > 0:
+        planes = plane_normals(points, params.seed, should_cancel, tree=tree)
     free_space = None
     if params.lambda3 > 0:
-        free_space = FreeSpace(points, tree=tree, spacing=distances[:, :2], should_cancel=should_cancel)
+        free_space = FreeSpace(points, tree=tree, spacing=distances[:, :2], normals=planes, should_cancel=should_cancel)
     # The normal term's normals, oriented where the free-space map tells, and whether they are.
     cloud_normals = None
-    if params.lambda4 > 0:
-        planes = plane_normals(points, params.seed, should_cancel, tree=tree)
+    if planes is not None and params.lambda4 > 0:
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))

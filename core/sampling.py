@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from core.errors import CancelCheck, check_cancel
+from core.visibility import escape_counts
 
 # The shape fills [-0.5, 0.5]^3 in the unit frame; uniform samples cover a slightly larger box.
 BOX_HALF_SIZE = 0.6
@@ -32,6 +33,16 @@ PLANE_POINTS = 16_384
 # shell of dilated voxels around the points, whose sign is unknown (on the sample shapes: 94 to 100 %
 # of the points of the CAD parts oriented, 81 % of featuretype's, nearly all wrong ones on edges).
 ORIENT_VOXELS = 3
+# Open clouds (the free-space map's flood fill leaks in through an unsampled face): an empty
+# region is a candidate for the inside of an open part when none of its voxels sees the box's
+# boundary in more than OPEN_ESCAPE_MAX of the 26 grid directions. On the sample shapes, empty space
+# outside a part sees it in 9 to 26 (mostly 17 or more), the inside of a cube whose top was not
+# sampled in at most 9; pockets and bores of closed parts see little too, and the walls' votes
+# tell them apart. A region is taken back as inside when at least OPEN_MIN_VOTES wall points, and
+# OPEN_VOTE_RATIO times as many as say otherwise, have open outside space behind them.
+OPEN_ESCAPE_MAX = 11
+OPEN_MIN_VOTES = 32
+OPEN_VOTE_RATIO = 3
 # Seconds between cancel checks while a call that cannot be interrupted runs in a thread.
 _POLL_SECONDS = 0.05
 
@@ -166,6 +177,11 @@ class FreeSpace:
     reached from the box's boundary are inside. Near the points (the dilated voxels) and for
     clouds that do not enclose a volume, the sign is unknown (0).
 
+    An open cloud lets the fill run into the solid. Given the points' unoriented ``normals``
+    (``plane_normals``), regions of that kind are found and taken back as inside (``_close_openings``):
+    empty space that sees little of the box's boundary, whose walls have open outside space behind
+    them. A closed cloud's map is left as the fill made it.
+
     ``tree`` and ``spacing`` (the distances to the 1st and 4th nearest neighbours) may be given
     when the caller has them; ``should_cancel`` is polled throughout.
     """
@@ -176,6 +192,7 @@ class FreeSpace:
         *,
         tree: cKDTree | None = None,
         spacing: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
         should_cancel: CancelCheck | None = None,
     ):
         self.tree = tree if tree is not None else build_tree(points, should_cancel)
@@ -185,14 +202,51 @@ class FreeSpace:
         self.voxel = max(float(np.median(spacing[:, 1])), 2 * BOX_HALF_SIZE / MAX_GRID_CELLS)
         cells = int(np.ceil(2 * BOX_HALF_SIZE / self.voxel))
         shell = np.zeros((cells,) * 3, dtype=bool)
-        index = np.clip(((points + BOX_HALF_SIZE) / self.voxel).astype(int), 0, cells - 1)
-        shell[tuple(index.T)] = True
+        shell[self._cells(points)] = True
         check_cancel(should_cancel)
         shell = polled(lambda: ndimage.binary_dilation(shell, structure=np.ones((3, 3, 3), dtype=bool)), should_cancel)
         enclosed = polled(lambda: ndimage.binary_fill_holes(shell), should_cancel)
         sign = np.where(enclosed, 0, 1).astype(np.int8)
         sign[enclosed & ~shell] = -1
+        if normals is not None:
+            check_cancel(should_cancel)
+            sign = self._close_openings(sign, points, normals)
         self.sign_grid = torch.as_tensor(sign)
+
+    def _close_openings(self, sign: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """``sign`` (cells³, int8) with the inside of an open part, which the fill reached through
+        an unsampled face, marked inside (-1).
+
+        Candidates are the connected regions of reachable voxels that see the box's boundary in at
+        most ``OPEN_ESCAPE_MAX`` directions (``core.visibility.escape_counts``). Each wall point
+        votes for the region on one side of it (``ORIENT_VOXELS`` voxels along its normal): inside
+        when open outside space (reachable, not a candidate) lies on its other side, outside when
+        the solid (-1) does. A pocket in a closed part has the solid behind its walls; the inside
+        of an open box has the outside behind them.
+        """
+        candidates = (sign == 1) & (escape_counts(sign == 0) <= OPEN_ESCAPE_MAX)
+        regions, count = ndimage.label(candidates, structure=np.ones((3, 3, 3), dtype=bool))
+        if count == 0:
+            return sign
+        step = ORIENT_VOXELS * self.voxel
+        sides = [self._cells(points + step * normals), self._cells(points - step * normals)]
+        inside_votes = np.zeros(count + 1, dtype=np.int64)
+        outside_votes = np.zeros(count + 1, dtype=np.int64)
+        for here, there in (sides, sides[::-1]):
+            region, other_sign, other_region = regions[here], sign[there], regions[there]
+            inside_votes += np.bincount(region[(other_sign == 1) & (other_region == 0)], minlength=count + 1)
+            outside_votes += np.bincount(region[other_sign == -1], minlength=count + 1)
+        inside = (inside_votes >= OPEN_MIN_VOTES) & (inside_votes >= OPEN_VOTE_RATIO * outside_votes)
+        inside[0] = False  # label 0: not a candidate
+        repaired = sign.copy()
+        repaired[inside[regions]] = -1
+        return repaired
+
+    def _cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The index of the free-space voxel of each of ``points`` (N, 3), clamped to the grid."""
+        cells = int(np.ceil(2 * BOX_HALF_SIZE / self.voxel))
+        index = np.clip(((points + BOX_HALF_SIZE) / self.voxel).astype(int), 0, cells - 1)
+        return index[:, 0], index[:, 1], index[:, 2]
 
     def outward(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """Which way each unoriented normal (N, 3) at ``points`` (N, 3) points out of the solid

@@ -139,6 +139,31 @@ def test_free_space_orients_the_normals_of_a_closed_cloud_outward():
     assert (outward[sides != 0] > 0).mean() > 0.995  # the exceptions straddle an edge
 
 
+def open_cube(n_points: int = 6000, seed: int = 1) -> np.ndarray:
+    """A noisy cube's points without its top face (clean z above 0.45): an open cloud."""
+    shape = sample_shape("cube", n_points=n_points, seed=seed)
+    return shape.points[shape.clean_points[:, 2] < 0.45]
+
+
+def test_free_space_of_an_open_cube_takes_its_inside_back_given_the_walls_normals():
+    points = open_cube()
+    probes = torch.tensor([[0.0, 0.0, 0.0], [0.2, -0.2, -0.3], [0.1, 0.1, 0.35], [0.58, 0.58, 0.58], [0.0, 0.0, 0.59]])
+    _, leaked = FreeSpace(points).distance_and_sign(probes)
+    assert leaked.tolist() == [1, 1, 1, 1, 1]  # the flood fill runs in through the missing face
+    space = FreeSpace(points, normals=sampling.plane_normals(points))
+    _, sign = space.distance_and_sign(probes)
+    assert sign.tolist() == [-1, -1, -1, 1, 1]
+    sides = space.outward(points, sampling.plane_normals(points))
+    assert np.mean(sides != 0) > 0.9  # the walls are oriented again, not outside on both sides
+
+
+@pytest.mark.parametrize("name", ["cube", "l_shape", "cylinder", "sphere"])
+def test_free_space_of_a_closed_cloud_is_the_flood_fills_with_or_without_normals(name):
+    points = sample_shape(name, n_points=6000, seed=2).points  # the L's notch sees little sky, and stays outside
+    plain = FreeSpace(points).sign_grid
+    torch.testing.assert_close(FreeSpace(points, normals=sampling.plane_normals(points)).sign_grid, plain)
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_neighbour_distances_are_the_brute_force_ones_on_any_number_of_threads(monkeypatch, threads):
     monkeypatch.setattr(sampling, "QUERY_CHUNK", 700)  # several chunks

@@ -1,0 +1,51 @@
+"""How much of the sky a voxel sees: the directions in which a ray leaves the grid unblocked.
+
+An open cloud (a scan whose base was never scanned, a part with an unsampled face) lets the
+free-space map's flood fill run from the box's boundary into the solid, so the inside is labelled
+outside. What still tells the two apart is visibility: empty space outside a part sees the box's
+boundary in most of the 26 grid directions, the inside of an open part only through its opening.
+``core.sampling.FreeSpace`` uses this, with the walls' normals, to take such regions back.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+# The 26 directions to a voxel's neighbours (13 lines, both ways).
+DIRECTIONS = tuple(d for d in itertools.product((-1, 0, 1), repeat=3) if d != (0, 0, 0))
+
+
+def escape_counts(blocked: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) uint8: for each voxel, in how many of the 26 ``DIRECTIONS`` the ray from it
+    (stepping one voxel along the direction at a time) leaves the grid without entering a voxel of
+    ``blocked`` (a (n0, n1, n2) bool array; the voxel itself does not count).
+
+    One sweep per direction, a slice at a time: a voxel's ray is blocked when its next voxel is
+    blocked or that voxel's ray is, so the whole grid costs 26 passes over it (0.1 s at 90³).
+    """
+    counts = np.zeros(blocked.shape, dtype=np.uint8)
+    for direction in DIRECTIONS:
+        axis = max(i for i in range(3) if direction[i] != 0)  # sweep along an axis the ray advances on
+        order = [i for i in range(3) if i != axis] + [axis]
+        grid = np.transpose(blocked, order)
+        step, (shift0, shift1) = direction[axis], (direction[order[0]], direction[order[1]])
+        hit = np.zeros_like(grid)
+        size = grid.shape[2]
+        slices = range(size - 2, -1, -1) if step > 0 else range(1, size)
+        for i in slices:
+            hit[:, :, i] = _shifted(grid[:, :, i + step] | hit[:, :, i + step], shift0, shift1)
+        counts += ~np.transpose(hit, np.argsort(order))
+    return counts
+
+
+def _shifted(plane: np.ndarray, shift0: int, shift1: int) -> np.ndarray:
+    """``plane`` (a, b) read at offset (shift0, shift1): out[i, j] = plane[i + shift0, j + shift1],
+    False past the edge (a ray that leaves the grid is not blocked)."""
+    out = np.zeros_like(plane)
+    a, b = plane.shape
+    source = (slice(max(shift0, 0), a + min(shift0, 0)), slice(max(shift1, 0), b + min(shift1, 0)))
+    target = (slice(max(-shift0, 0), a + min(-shift0, 0)), slice(max(-shift1, 0), b + min(-shift1, 0)))
+    out[target] = plane[source]
+    return out
