@@ -29,23 +29,19 @@ def escape_counts(blocked: np.ndarray) -> np.ndarray:
     for direction in DIRECTIONS:
         axis = max(i for i in range(3) if direction[i] != 0)  # sweep along an axis the ray advances on
         order = [i for i in range(3) if i != axis] + [axis]
-        grid = np.transpose(blocked, order)
-        step, (shift0, shift1) = direction[axis], (direction[order[0]], direction[order[1]])
-        hit = np.zeros_like(grid)
-        size = grid.shape[2]
-        slices = range(size - 2, -1, -1) if step > 0 else range(1, size)
-        for i in slices:
-            hit[:, :, i] = _shifted(grid[:, :, i + step] | hit[:, :, i + step], shift0, shift1)
-        counts += ~np.transpose(hit, np.argsort(order))
+        grid = np.ascontiguousarray(np.moveaxis(np.transpose(blocked, order), 2, 0))  # slices first
+        step = direction[axis]
+        (source0, target0), (source1, target1) = (_overlap(grid.shape[k + 1], direction[order[k]]) for k in (0, 1))
+        hit = np.zeros_like(grid)  # hit[i]: the ray from each voxel of slice i meets a blocked voxel
+        ahead = np.empty_like(grid[0])
+        for i in range(grid.shape[0] - 2, -1, -1) if step > 0 else range(1, grid.shape[0]):
+            np.logical_or(grid[i + step], hit[i + step], out=ahead)
+            hit[i][target0, target1] = ahead[source0, source1]  # past the edge: left the grid, not blocked
+        counts += ~np.transpose(np.moveaxis(hit, 0, 2), np.argsort(order))
     return counts
 
 
-def _shifted(plane: np.ndarray, shift0: int, shift1: int) -> np.ndarray:
-    """``plane`` (a, b) read at offset (shift0, shift1): out[i, j] = plane[i + shift0, j + shift1],
-    False past the edge (a ray that leaves the grid is not blocked)."""
-    out = np.zeros_like(plane)
-    a, b = plane.shape
-    source = (slice(max(shift0, 0), a + min(shift0, 0)), slice(max(shift1, 0), b + min(shift1, 0)))
-    target = (slice(max(-shift0, 0), a + min(-shift0, 0)), slice(max(-shift1, 0), b + min(-shift1, 0)))
-    out[target] = plane[source]
-    return out
+def _overlap(size: int, shift: int) -> tuple[slice, slice]:
+    """The slices (source, target) of an axis of ``size`` read at offset ``shift``:
+    out[target] = plane[source] means out[j] = plane[j + shift] wherever both exist."""
+    return slice(max(shift, 0), size + min(shift, 0)), slice(max(-shift, 0), size + min(-shift, 0))
