@@ -265,7 +265,6 @@ class FreeSpace:
     def distance_and_sign(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         """The distance from each sample to the nearest input point, and its sign (-1, 0 or +1)."""
         distance = torch.as_tensor(self.tree.query(samples.numpy(), k=1)[0], dtype=samples.dtype)
-        cells = self.sign_grid.shape[0]
-        index = ((samples + BOX_HALF_SIZE) / self.voxel).long().clamp(0, cells - 1)
-        sign = self.sign_grid[index[:, 0], index[:, 1], index[:, 2]].to(samples.dtype)
+        index = tuple(torch.as_tensor(axis) for axis in self._cells(samples.numpy()))
+        sign = self.sign_grid[index].to(samples.dtype)
         return distance, sign
