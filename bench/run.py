@@ -14,7 +14,9 @@ folder's README). Configurations differ only in the loss: ``igr`` (no Laplacian 
 dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults with the old
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
-samples against the true edges as ECD does the edge points; ``genus`` is the mesh's.
+samples against the true edges as ECD does the edge points; ``genus`` is the mesh's. A cloud
+``<shape>/open`` is that shape's open variant (evaluation.open_clouds: the points beyond a plane
+deleted, scored against the whole true surface).
 ``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D
 (bench/speed.py's pipeline: PCA normals, orientation, depth 9, trimming), scored the same way
 with the cloud's normals; it has no edges (their scores are blank), its fit s is the normals'
@@ -40,6 +42,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -71,6 +74,10 @@ CLOUDS = [
     "idler_riser",
     "box_hole/points_4096.ply",
     "box_hole/points_noise010.ply",
+    "cube/open",
+    "sphere/open",
+    "l_bracket/open",
+    "box_hole/open",
 ]
 COLUMNS = [
     ("d_C", "chamfer", "{:.4f}"),
@@ -170,22 +177,35 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     from evaluation.metrics import edge_chamfer
     from evaluation.sample_data import evaluate_shape
 
-    shape, _, points_file = cloud.partition("/")
-    points_file = points_file or "points.ply"
-    if config in BASELINES:
-        return run_baseline(data / shape, points_file)
-    configure_core()
-    points = read_points(data / shape / points_file)
-    result = reconstruct(points, params_for(config, overrides))
-    scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, data / shape, points_file=points_file)
+    with tempfile.TemporaryDirectory() as variants:
+        shape_dir, points_file = resolve_cloud(cloud, data, Path(variants))
+        if config in BASELINES:
+            return run_baseline(shape_dir, points_file)
+        configure_core()
+        points = read_points(shape_dir / points_file)
+        result = reconstruct(points, params_for(config, overrides))
+        scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
+        true_edges = np.load(shape_dir / "edges_gt.npy")
     scores["curve_ecd"] = float("nan")
-    true_edges = np.load(data / shape / "edges_gt.npy")
     if result.curves and len(true_edges):
         scores["curve_ecd"] = edge_chamfer(np.concatenate([curve.points for curve in result.curves]), true_edges)
     mesh = result.mesh
     scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+
+
+def resolve_cloud(cloud: str, data: Path, variants: Path) -> tuple[Path, str]:
+    """The shape folder and input file of a cloud name: ``cube`` is ``points.ply`` of ``cube``,
+    ``box_hole/points_4096.ply`` that file, ``cube/open`` the open variant written under
+    ``variants`` (evaluation.open_clouds: the points beyond a plane deleted).
+    """
+    from evaluation.open_clouds import OPEN_POINTS, write_open_variant
+
+    shape, _, points_file = cloud.partition("/")
+    if points_file == "open":
+        return write_open_variant(data / shape, variants), OPEN_POINTS
+    return data / shape, points_file or "points.ply"
 
 
 def run_baseline(shape_dir: Path, points_file: str) -> dict:
