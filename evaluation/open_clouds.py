@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -60,7 +60,7 @@ def write_open_variant(shape_dir: Path, out_root: Path, cut: Cut | None = None) 
     out = out_root / shape_dir.name
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / OPEN_POINTS, points[keep])
-    per_point = {key: _subset(value, keep, len(points)) for key, value in labels.items()}
+    per_point: dict[str, Any] = {key: _subset(value, keep, len(points)) for key, value in labels.items()}
     np.savez(out / labels_file(OPEN_POINTS), **per_point)
     for name in ("gt.ply", "edges_gt.npy"):
         shutil.copyfile(shape_dir / name, out / name)
