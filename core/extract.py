@@ -7,6 +7,7 @@ points or grid nodes there are.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Iterator
 from functools import partial
@@ -22,6 +23,8 @@ from core.errors import CancelCheck, EmptySurfaceError, check_cancel
 from core.grid import Grid
 from core.network import ImplicitNetwork
 
+log = logging.getLogger(__name__)
+
 # The grid covers the cloud's bounding box plus this margin on every side (unit frame).
 GRID_MARGIN = 0.05
 # A cell is refined when some corner has |f| below this many cell diagonals. Every point of a
@@ -29,6 +32,12 @@ GRID_MARGIN = 0.05
 # be exact; 0.75 leaves room for |∇f| up to 1.5.
 _NEAR_DIAGONALS = 0.75
 _COARSEST_CELLS = 32
+# Dual contouring puts one vertex on each patch of a cell's surface, so a cell through which two
+# sheets pass joined by a tunnel (one marching-cubes patch) joins them at one vertex, and a mesh
+# edge can get four faces: not a manifold. Seen once in the sample shapes' fits (featuretype,
+# one edge of 150,000). The grid one cell finer falls differently on the surface, so the
+# extraction samples it again, up to this many grids in all, then falls back to marching cubes.
+DUAL_ATTEMPTS = 3
 
 
 @torch.no_grad()
@@ -94,13 +103,31 @@ def extract_mesh(
     corners. Returns the mesh and statistics (how many grid nodes were evaluated, of how many).
     """
     values_at = partial(evaluate, model, should_cancel=should_cancel)
-    grid = sample_grid(values_at, resolution, low, high, should_cancel)
     if method == "sharp":
-        mesh = dual_contour(grid, values_at, partial(derivatives, model, should_cancel=should_cancel))
+        derivatives_at = partial(derivatives, model, should_cancel=should_cancel)
+        for attempt in range(DUAL_ATTEMPTS):
+            grid = sample_grid(values_at, resolution + attempt, low, high, should_cancel)
+            mesh = dual_contour(grid, values_at, derivatives_at)
+            if is_closed_manifold(mesh):
+                return mesh, _grid_stats(grid)
+            log.warning("dual contouring on %d cells left a non-manifold edge", resolution + attempt)
+        log.warning("the mesh is marching cubes' after %d dual-contoured grids", DUAL_ATTEMPTS)
     else:
-        vertices, faces, _, _ = marching_cubes(grid.values, 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent")
-        mesh = trimesh.Trimesh(vertices + grid.origin, faces, process=False)
-    return mesh, {"grid_nodes": int(grid.values.size), "evaluated_nodes": grid.evaluated}
+        grid = sample_grid(values_at, resolution, low, high, should_cancel)
+    vertices, faces, _, _ = marching_cubes(grid.values, 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent")
+    return trimesh.Trimesh(vertices + grid.origin, faces, process=False), _grid_stats(grid)
+
+
+def _grid_stats(grid: Grid) -> dict:
+    """How many grid nodes the extraction evaluated, of how many."""
+    return {"grid_nodes": int(grid.values.size), "evaluated_nodes": grid.evaluated}
+
+
+def is_closed_manifold(mesh: trimesh.Trimesh) -> bool:
+    """Every edge of ``mesh`` has exactly two faces (trimesh's watertight), and it has faces."""
+    edges = np.sort(mesh.edges, axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return len(counts) > 0 and bool((counts == 2).all())
 
 
 @torch.no_grad()

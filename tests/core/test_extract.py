@@ -238,3 +238,59 @@ def test_chunking_gives_identical_results(monkeypatch):
     assert chunked_stats == stats
     np.testing.assert_allclose(chunked.vertices, mesh.vertices, rtol=0, atol=1e-6)
     np.testing.assert_array_equal(chunked.faces, mesh.faces)
+
+
+# --- a non-manifold dual contour ------------------------------------------------------------------
+
+
+def test_closed_manifold_means_two_faces_on_every_edge():
+    import trimesh
+
+    cube = trimesh.creation.box()
+    assert extract.is_closed_manifold(cube)
+    assert not extract.is_closed_manifold(trimesh.Trimesh(cube.vertices, cube.faces[1:], process=False))
+    # Two cubes sharing one edge, welded there: that edge has four faces.
+    other = cube.copy()
+    other.apply_translation([1.0, 1.0, 0.0])
+    welded = trimesh.util.concatenate([cube, other])
+    welded.merge_vertices()
+    assert welded.is_volume is False and not extract.is_closed_manifold(welded)
+    assert not extract.is_closed_manifold(trimesh.Trimesh())
+
+
+def _with_an_edge_of_four_faces(mesh):
+    """``mesh`` with two faces glued onto one of its edges (a fin): that edge then has four faces."""
+    import trimesh
+
+    a, b = mesh.faces[0][:2]
+    tip = len(mesh.vertices)
+    vertices = np.vstack([mesh.vertices, mesh.vertices[[a, b]].mean(axis=0) + 0.01])
+    return trimesh.Trimesh(vertices, np.vstack([mesh.faces, [[a, b, tip], [b, a, tip]]]), process=False)
+
+
+def test_a_non_manifold_dual_contour_is_extracted_again_one_cell_finer(monkeypatch):
+    real_contour, real_grid = extract.dual_contour, extract.sample_grid
+    resolutions = []
+
+    def recorded_grid(values_at, resolution, *args):
+        resolutions.append(resolution)
+        return real_grid(values_at, resolution, *args)
+
+    def first_one_non_manifold(*args):
+        mesh = real_contour(*args)
+        return _with_an_edge_of_four_faces(mesh) if len(resolutions) == 1 else mesh
+
+    monkeypatch.setattr(extract, "sample_grid", recorded_grid)
+    monkeypatch.setattr(extract, "dual_contour", first_one_non_manifold)
+    mesh, _ = extract_mesh(network("sphere"), 48, *box("sphere"), method="sharp")
+    assert resolutions == [48, 49]
+    assert mesh.is_watertight and extract.is_closed_manifold(mesh) and mesh.volume > 0
+
+
+def test_after_every_grid_non_manifold_the_mesh_is_marching_cubes(monkeypatch):
+    real = extract.dual_contour
+    monkeypatch.setattr(extract, "dual_contour", lambda *args: _with_an_edge_of_four_faces(real(*args)))
+    mesh, _ = extract_mesh(network("sphere"), 48, *box("sphere"), method="sharp")
+    marching, _ = extract_mesh(network("sphere"), 48 + extract.DUAL_ATTEMPTS - 1, *box("sphere"), method="mc")
+    assert mesh.is_watertight and np.array_equal(mesh.faces, marching.faces)
+    assert np.allclose(mesh.vertices, marching.vertices)
