@@ -319,7 +319,7 @@ def steps(overrides: dict, repeats: int = 30) -> str:
             model = models.setdefault((name, dtype_name), ImplicitNetwork(params.width, params.depth, params.beta))
             optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
             started = time.perf_counter()
-            loss, _, _ = step_loss(model, batch, samples, variants[name], free_space, dtypes[dtype_name])
+            loss = step_loss(model, batch, samples, variants[name], free_space, dtypes[dtype_name])[0]
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

@@ -45,8 +45,9 @@ def fit(
 
     A cloud of more than ``FIT_POINTS`` points is fitted to that many of them (``fit_rows``). The
     normal term (``lambda4``) covers the first ``NORMAL_TERM_SHARE`` of the steps.
-    Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``),
-    computes ``step_loss`` and takes one Adam step, with the learning rate decaying geometrically.
+    Each step draws ``batch_points`` input points and their eikonal samples (``draw_batch``; a
+    ``residual_share`` of the points in proportion to their |f| when last drawn), computes
+    ``step_loss`` and takes one Adam step, with the learning rate decaying geometrically.
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
     neighbour queries and the free-space map take seconds); when it returns True, ``Cancelled``
     is raised.
@@ -81,13 +82,19 @@ def fit(
     decay = (params.final_learning_rate / params.learning_rate) ** (1.0 / max(params.iterations - 1, 1))
     schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=decay)
 
+    # Each point's |f| when it was last drawn; 1 (far above any fitted residual) until then, so the
+    # first weighted draws go to the points not yet seen.
+    residuals = torch.ones(len(cloud))
     for iteration in range(1, params.iterations + 1):
         check_cancel(should_cancel)
-        batch, samples, rows = draw_batch(cloud, scales, batch_size, generator)
+        batch, samples, rows = draw_batch(cloud, scales, batch_size, generator, residuals, params.residual_share)
         batch_normals = None
         if cloud_normals is not None and iteration <= NORMAL_TERM_SHARE * params.iterations:
             batch_normals = (cloud_normals[0][rows], cloud_normals[1][rows])
-        loss, terms, edges = step_loss(model, batch, samples, params, free_space, matmul_dtype, batch_normals)
+        loss, terms, edges, batch_residuals = step_loss(
+            model, batch, samples, params, free_space, matmul_dtype, batch_normals
+        )
+        residuals[rows] = batch_residuals
 
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -117,8 +124,9 @@ def step_loss(
     free_space: FreeSpace | None = None,
     matmul_dtype: torch.dtype | None = None,
     normals: tuple[Tensor, Tensor] | None = None,
-) -> tuple[Tensor, dict[str, Tensor], Tensor]:
-    """The loss of one step, its terms, and the batch's edge mask (DES).
+) -> tuple[Tensor, dict[str, Tensor], Tensor, Tensor]:
+    """The loss of one step, its terms, the batch's edge mask (DES) and |f| at the batch's points
+    (detached: the residuals that weight the next draws).
 
     ``batch`` holds input points, ``samples`` the eikonal samples (near the points, then uniform in
     the box). One pass of the network gives f and ∇f everywhere and Δf at the batch; the eikonal
@@ -146,7 +154,7 @@ def step_loss(
         distance, sign = free_space.distance_and_sign(samples)
         terms["free_space"] = free_space_loss(f[n:], distance, sign, free_space.margin)
         loss = loss + params.lambda3 * terms["free_space"]
-    return loss, terms, edges
+    return loss, terms, edges, f[:n].detach().abs()
 
 
 def matmul_dtype_for(precision: str) -> torch.dtype | None:

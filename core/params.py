@@ -77,6 +77,12 @@ class FitParams(BaseModel):
     depth: int = Field(4, ge=1, le=12, description="hidden layers")
     beta: float = Field(200.0, gt=0, le=1e4, description="softplus sharpness (IGR uses 100)")
     batch_points: int = Field(1024, ge=64, le=65_536, description="input points per step")
+    residual_share: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="share of each step's input points drawn in proportion to their last |f| (the rest uniformly)",
+    )
     learning_rate: float = Field(5e-3, gt=0, le=1.0, description="initial Adam learning rate")
     precision: Literal["auto", "float32", "bfloat16"] = Field(
         "auto", description="matrix products in training: bfloat16 where the CPU has it natively (auto), or float32"

@@ -117,12 +117,31 @@ def eikonal_samples(batch: Tensor, scales: Tensor, n_uniform: int, generator: to
     return torch.cat([near, box])
 
 
-def draw_batch(cloud: Tensor, scales: Tensor, size: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+def draw_batch(
+    cloud: Tensor,
+    scales: Tensor,
+    size: int,
+    generator: torch.Generator,
+    residuals: Tensor | None = None,
+    residual_share: float = 0.0,
+) -> tuple[Tensor, Tensor, Tensor]:
     """One step's inputs: ``size`` input points drawn at random, their eikonal samples (near the
-    first half of them, then ``size // 8`` uniform in the box), and the rows of the points drawn."""
+    first half of them, then ``size // 8`` uniform in the box), and the rows of the points drawn.
+
+    With ``residuals`` (N,), each input point's last |f|, the last ``round(size * residual_share)``
+    points are drawn again in proportion to them (with replacement), after the eikonal samples:
+    the steps go where the surface does not yet pass through the points (a small hole, a thin
+    rib) instead of to the faces already fitted to the noise, and the eikonal samples keep their
+    uniform cover. With none, the draws are the uniform ones alone.
+    """
     index = torch.randint(len(cloud), (size,), generator=generator)
     near = index[: max(size // 2, 1)]
-    return cloud[index], eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator), index
+    samples = eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator)
+    weighted = round(size * residual_share)
+    if residuals is not None and weighted:
+        index = index.clone()
+        index[size - weighted :] = torch.multinomial(residuals, weighted, replacement=True, generator=generator)
+    return cloud[index], samples, index
 
 
 def subsample_rows(count: int, limit: int, seed: int) -> np.ndarray:

@@ -185,6 +185,42 @@ def test_eikonal_samples_are_near_points_then_uniform_in_the_box():
     assert samples[500:].abs().max() <= 0.6 and samples[500:].std() > 0.25
 
 
+def _batch_inputs(count: int = 2000) -> tuple[torch.Tensor, torch.Tensor]:
+    points = sample_shape("sphere", n_points=count, seed=0).points
+    return torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(local_scales(points), dtype=torch.float32)
+
+
+def test_draws_without_a_residual_share_are_the_uniform_ones():
+    cloud, scales = _batch_inputs()
+    plain = sampling.draw_batch(cloud, scales, 256, torch.Generator().manual_seed(5))
+    residuals = torch.rand(len(cloud))
+    for share in (0.0, None):
+        args = (residuals, share) if share is not None else (None, 0.5)
+        drawn = sampling.draw_batch(cloud, scales, 256, torch.Generator().manual_seed(5), *args)
+        assert all(torch.equal(a, b) for a, b in zip(plain, drawn))
+
+
+def test_residual_draws_replace_the_last_share_of_the_points_and_keep_the_samples():
+    cloud, scales = _batch_inputs()
+    _, plain_samples, plain_rows = sampling.draw_batch(cloud, scales, 256, torch.Generator().manual_seed(5))
+    residuals = torch.zeros(len(cloud))
+    residuals[17] = 0.3  # the only point not yet fitted
+    batch, samples, rows = sampling.draw_batch(cloud, scales, 256, torch.Generator().manual_seed(5), residuals, 0.25)
+    assert torch.equal(rows[:192], plain_rows[:192]) and (rows[192:] == 17).all()
+    assert torch.equal(batch, cloud[rows]) and torch.equal(samples, plain_samples)
+
+
+def test_residual_draws_are_in_proportion_to_the_residuals():
+    cloud, scales = _batch_inputs()
+    residuals = torch.full((len(cloud),), 0.004)  # faces fitted to the noise
+    residuals[:100] = 0.012  # a feature the surface misses: three times the residual
+    generator = torch.Generator().manual_seed(0)
+    rows = torch.cat([sampling.draw_batch(cloud, scales, 1024, generator, residuals, 1.0)[2] for _ in range(40)])
+    share = (rows < 100).float().mean().item()
+    expected = 100 * 0.012 / (100 * 0.012 + 1900 * 0.004)  # 0.136
+    assert abs(share - expected) < 0.01, share
+
+
 # --- the loop -------------------------------------------------------------------------------------
 
 
