@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from core import features
 from core.curves import _along, distance_to_curves, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
@@ -144,6 +145,29 @@ def test_sharpening_restores_the_edges_a_fit_rounds():
     for mesh, bound in ((plain_mesh, (0.003, np.inf)), (sharp_mesh, (0.0, 0.001))):
         gap = distance_to_mesh(on_edges[away], mesh.vertices, mesh.faces)
         assert bound[0] <= np.percentile(gap, 99) < bound[1]
+
+
+@pytest.mark.parametrize("radius, edges", [(0.015, True), (0.03, True), (0.04, False), (0.05, False)])
+def test_a_rounding_as_narrow_as_a_fits_is_an_edge_and_a_wider_bend_is_not(radius, edges):
+    # A fit rounds a sharp edge over a band 0.02 to 0.035 wide (a box rounded by 0.015 to 0.03);
+    # a bend of radius 0.04 or more with flat faces beside it (a smooth part, the bump of a scan)
+    # keeps its curve: without features.BAND_WIDTH both of these got edge curves.
+    rounded = functools.partial(box, radius=radius)
+    grid = sample_grid(rounded, 160, LOW, HIGH)
+    mesh = dual_contour(grid, rounded, lambda x: (rounded(x), gradient(rounded, x)))
+    length = sum(curve.length for curve in edge_curves(mesh, 30.0, 0.02, 0.005))
+    # The box's twelve edges are 6.0 long; each curve stops short of the corners.
+    assert 5.0 < length < 6.0 if edges else length == 0
+
+
+def test_band_width_of_a_steady_turn_is_four_fifths_of_its_band():
+    # Normals turning at a steady rate by 60° between s = -0.02 and 0.02, read every 0.01 from
+    # -0.06 to 0.06, flat beyond: from 10 % to 90 % of the turn is 0.8 of the band's 0.04.
+    s = np.arange(-6, 7) * 0.01
+    angle = np.radians(60) * np.clip((s + 0.02) / 0.04, 0, 1)
+    profile = np.stack([np.zeros_like(s), np.sin(angle), np.cos(angle)], axis=1)[None]
+    assert features.band_width(profile, 0.01) == pytest.approx([0.032], abs=1e-12)
+    assert features.band_width(profile[:, ::-1], 0.01) == pytest.approx([0.032], abs=1e-12)
 
 
 def test_sharpening_leaves_a_smooth_surface_alone():
