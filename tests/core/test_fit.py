@@ -306,8 +306,10 @@ def test_small_fit_of_a_cube_is_close_watertight_and_outward(fitted_cube):
     shape, result = fitted_cube
     assert result.mesh.is_watertight and result.mesh.volume == pytest.approx(1.0, rel=0.05)
     surface = surface_distances(result.mesh, shape.mesh, count=20_000)
-    # measured with seeds 0 and 1: d_C 0.0019-0.0020, d_H 0.034-0.036, normals 4.4-4.5° mean, 1.1-1.2° median
-    assert surface["chamfer_exact"] < 0.003 and surface["hausdorff_exact"] < 0.05, surface
+    # measured with seeds 0 and 1 (2026-12-03): d_C 0.0030-0.0035, d_H 0.026-0.029, normals 5.0-5.1°
+    # mean, 1.4-1.5° median. Uniform draws (residual_share 0) give this small network d_C 0.0021 and
+    # d_H 0.031: its rounded edges keep their points' |f| high, and the residual draws go there.
+    assert surface["chamfer_exact"] < 0.0045 and surface["hausdorff_exact"] < 0.05, surface
     normals = normal_errors(result.normals, shape.normals)
     assert normals["normal_inward_share"] == 0, normals
     assert normals["normal_mean_oriented"] < 6 and normals["normal_median_oriented"] < 2, normals
@@ -316,7 +318,7 @@ def test_small_fit_of_a_cube_is_close_watertight_and_outward(fitted_cube):
 def test_small_fit_of_a_cube_finds_its_edges(fitted_cube):
     shape, result = fitted_cube
     scores = edge_scores(result.edge_indices, shape.is_edge)
-    # measured: precision 0.43-0.44, recall 0.94-0.96 (the band of true edge points is 0.01 wide)
+    # measured: precision 0.47, recall 0.93-0.94 (the band of true edge points is 0.01 wide)
     assert scores["edge_precision"] > 0.3 and scores["edge_recall"] > 0.75 and scores["edge_iou"] > 0.3, scores
     assert result.edge_laplacian.min() > result.tau
 
