@@ -13,7 +13,9 @@ From a shell: ``python -m evaluation.shapes cube --points 6000 --seed 0 --out cu
 
 Shapes: ``cube``; ``box`` (1.0 x 0.8 x 0.5); ``l_shape`` (an extruded L with a concave inner
 edge); ``cylinder`` (96 sections: two circular rims, a smooth side); ``sphere`` (smooth control,
-no sharp edges). Booleans (holes) would need an extra engine (manifold3d), so there are none.
+no sharp edges); ``bumps`` (a smooth blob like a scan: a sphere with seven Gaussian bumps and dents,
+the tips of the narrowest with a curvature radius of 0.03 to 0.05; no sharp edges). Booleans
+(holes) would need an extra engine (manifold3d), so there are none.
 """
 
 from __future__ import annotations
@@ -27,7 +29,10 @@ import trimesh
 
 from evaluation.metrics import sample_triangles
 
-SHAPES = ("cube", "box", "l_shape", "cylinder", "sphere")
+SHAPES = ("cube", "box", "l_shape", "cylinder", "sphere", "bumps")
+# The bumps of ``bumps``: angular widths (radians) and heights, on a sphere of radius 1.
+BUMP_WIDTHS = (0.15, 0.2, 0.3, 0.12, 0.25, 0.4, 0.18)
+BUMP_HEIGHTS = (0.45, -0.12, 0.3, 0.35, -0.1, 0.25, 0.5)
 NOISE = 0.005
 EDGE_DELTA = 0.01
 SHARP_ANGLE_DEG = 30.0
@@ -68,6 +73,8 @@ def make_mesh(name: str) -> trimesh.Trimesh:
         mesh = trimesh.creation.cylinder(radius=0.5, height=0.6, sections=96)
     elif name == "sphere":
         mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    elif name == "bumps":
+        mesh = _bumps()
     else:
         raise ValueError(f"unknown shape {name!r}; choose one of {', '.join(SHAPES)}")
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
@@ -105,6 +112,21 @@ def sample_shape(
         edge_samples=_resample(sharp, EDGE_SPACING),
         mesh=mesh,
     )
+
+
+def _bumps() -> trimesh.Trimesh:
+    """A sphere of radius 1 (81,920 faces, neighbours at most 27° apart on the narrowest bump) with a
+    Gaussian bump or dent of ``BUMP_WIDTHS`` and ``BUMP_HEIGHTS`` around each of seven seeded
+    directions: flat-sided narrow bumps such as a scan's ears, where a sharp-edge detector that
+    looks only at the flanks finds a ridge."""
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=1.0)
+    directions = np.random.default_rng(3).normal(size=(len(BUMP_WIDTHS), 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    radius = np.ones(len(sphere.vertices))
+    for direction, width, height in zip(directions, BUMP_WIDTHS, BUMP_HEIGHTS, strict=True):
+        angle = np.arccos(np.clip(sphere.vertices @ direction, -1.0, 1.0))
+        radius += height * np.exp(-((angle / width) ** 2))
+    return trimesh.Trimesh(sphere.vertices * radius[:, None], sphere.faces)
 
 
 def sharp_edges(mesh: trimesh.Trimesh, angle_deg: float = SHARP_ANGLE_DEG) -> np.ndarray:

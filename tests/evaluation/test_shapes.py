@@ -24,7 +24,7 @@ def test_example_cloud_is_reproducible(tmp_path):
     assert (tmp_path / "cube.ply").read_bytes() == EXAMPLE.read_bytes()
 
 
-@pytest.mark.parametrize("name", ["cube", "box", "l_shape", "cylinder", "sphere"])
+@pytest.mark.parametrize("name", ["cube", "box", "l_shape", "cylinder", "sphere", "bumps"])
 def test_shapes_ground_truth_is_consistent(name):
     """The synthetic shapes: unit frame, labels as ../shared/data defines them."""
     shape = sample_shape(name, n_points=4000, seed=3)
@@ -37,11 +37,13 @@ def test_shapes_ground_truth_is_consistent(name):
     noise = shape.points - shape.clean_points
     assert noise.std() == pytest.approx(0.005, rel=0.05) and abs(noise.mean()) < 5e-4
     np.testing.assert_allclose(np.linalg.norm(shape.normals, axis=1), 1.0, atol=1e-12)
-    # Outward: the normal agrees with the (outward) face it was drawn from, to within the faceting.
+    # Outward: the normal agrees with the (outward) face it was drawn from, to within the faceting
+    # (on the narrowest bump of ``bumps`` neighbouring faces are up to 27° apart).
     face = mesh.face_normals[shape.face_index]
-    assert ((shape.normals * face).sum(axis=1) > np.cos(np.radians(5))).all()
+    faceting = 15 if name == "bumps" else 5
+    assert ((shape.normals * face).sum(axis=1) > np.cos(np.radians(faceting))).all()
     assert np.array_equal(shape.is_edge, shape.edge_dist <= 0.01)
-    if name == "sphere":
+    if name in ("sphere", "bumps"):
         assert not shape.is_edge.any() and np.isinf(shape.edge_dist).all() and len(shape.edge_samples) == 0
     else:
         assert 0.02 < shape.is_edge.mean() < 0.12
