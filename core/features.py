@@ -38,8 +38,8 @@ BAND_WIDTH = 0.05
 _CANDIDATE_TURNING = 3.0  # degrees to a nearby crossing's normal that make a crossing worth the walk
 _NEIGHBOURS = 8
 _PROJECTION_STEPS = 2
-_WALK_STEPS = 6  # to one and a half SIDE_STEP; the near reading after four
-_NEAR_STEP = 4
+_WALK_STEPS = 6  # to one and a half SIDE_STEP
+_NEAR_STEP = 4  # the reading at SIDE_STEP
 WALK_SPACING = 0.015  # unit frame: one walk per cube of this size
 
 

@@ -139,7 +139,6 @@ def draw_batch(
     samples = eikonal_samples(cloud[near], scales[near], max(size // 8, 1), generator)
     weighted = round(size * residual_share)
     if residuals is not None and weighted:
-        index = index.clone()
         index[size - weighted :] = torch.multinomial(residuals, weighted, replacement=True, generator=generator)
     return cloud[index], samples, index
 
