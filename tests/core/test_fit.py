@@ -261,6 +261,24 @@ def test_progress_reports_every_step_with_each_term():
     assert set(seen[-1].losses) == {"total", "vanish", "eikonal"}
 
 
+def test_the_early_steps_of_a_dense_cloud_draw_half_the_batch_and_the_last_steps_all_of_it(monkeypatch):
+    sizes: list[int] = []
+
+    def recording(cloud, scales, size, *args):
+        sizes.append(size)
+        return sampling.draw_batch(cloud, scales, size, *args)
+
+    monkeypatch.setattr(fit_module, "draw_batch", recording)
+    monkeypatch.setattr(fit_module, "HALF_BATCH_MIN_POINTS", 1000)
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    fit(points, FitParams(iterations=8, **SMALL))
+    half = round(fit_module.HALF_BATCH_SHARE * 8)
+    assert sizes == [128] * half + [256] * (8 - half) and 0 < half < 8
+    sizes.clear()  # a sparser cloud keeps the whole batch
+    fit(points[:999], FitParams(iterations=8, **SMALL))
+    assert sizes == [256] * 8
+
+
 def test_cancel_stops_the_fit():
     points = sample_shape("cube", n_points=1000, seed=0).points
     calls = []
