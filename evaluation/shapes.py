@@ -11,6 +11,10 @@ by more than 30 degrees) and ``is_edge`` (that distance <= 0.01).
 
 From a shell: ``python -m evaluation.shapes cube --points 6000 --seed 0 --out cube.ply``.
 
+Any mesh file (a public test model, a scan) is sampled the same way by ``sample_mesh``, and
+``write_shape_folder`` writes the result as a shape folder of ../shared/data's layout, which
+``bench/run.py --data`` scores: ``python -m evaluation.shapes --mesh bunny.ply --folder out/bunny``.
+
 Shapes: ``cube``; ``box`` (1.0 x 0.8 x 0.5); ``l_shape`` (an extruded L with a concave inner
 edge); ``cylinder`` (96 sections: two circular rims, a smooth side); ``sphere`` (smooth control,
 no sharp edges); ``bumps`` (a smooth blob like a scan: a sphere with seven Gaussian bumps and dents,
@@ -77,13 +81,21 @@ def make_mesh(name: str) -> trimesh.Trimesh:
         mesh = _bumps()
     else:
         raise ValueError(f"unknown shape {name!r}; choose one of {', '.join(SHAPES)}")
+    mesh = unit_frame(mesh)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    return mesh
+
+
+def unit_frame(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` merged (duplicate vertices joined), turned outward when it encloses a negative
+    volume, centred on its bounding box and scaled to a largest extent of 1, as ../shared/data's
+    shapes are. A mesh that is not watertight (a scan open at its base) keeps its own winding."""
     mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
-    if mesh.volume < 0:
+    if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
     low, high = mesh.bounds
     mesh.apply_translation(-(low + high) / 2)
     mesh.apply_scale(1.0 / (high - low).max())
-    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     return mesh
 
 
@@ -94,7 +106,19 @@ def sample_shape(
 
     The same arguments give the same cloud (numpy's PCG64 seeded with ``seed``).
     """
-    mesh = make_mesh(name)
+    return sample_mesh(make_mesh(name), name, n_points, noise, seed, edge_delta)
+
+
+def sample_mesh(
+    mesh: trimesh.Trimesh,
+    name: str,
+    n_points: int = 16_384,
+    noise: float = NOISE,
+    seed: int = 0,
+    edge_delta: float = EDGE_DELTA,
+) -> SampledShape:
+    """``n_points`` points drawn uniformly by area on ``mesh`` (already in the unit frame, see
+    ``unit_frame``), with Gaussian ``noise``, labelled as ``sample_shape`` labels them."""
     rng = np.random.default_rng(seed)
     clean, face_index, weights = sample_triangles(mesh.triangles, n_points, rng)
     points = clean + rng.normal(0.0, noise, size=clean.shape)
@@ -186,15 +210,53 @@ def _resample(segments: np.ndarray, spacing: float) -> np.ndarray:
     return np.unique(np.round(np.concatenate(pieces), 12), axis=0)
 
 
+def write_shape_folder(shape: SampledShape, folder: str | Path) -> Path:
+    """Write ``shape`` as a shape folder of ../shared/data's layout: ``points.ply``, ``labels.npz``
+    (``points``, ``points_clean``, ``normals``, ``face_index``, ``edge_dist``, ``is_edge``),
+    ``gt.ply`` and ``edges_gt.npy`` (float32). Returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_ply(folder / "points.ply", shape.points)
+    np.savez(
+        folder / "labels.npz",
+        points=shape.points.astype(np.float32),
+        points_clean=shape.clean_points.astype(np.float32),
+        normals=shape.normals.astype(np.float32),
+        face_index=shape.face_index.astype(np.int32),
+        edge_dist=shape.edge_dist.astype(np.float32),
+        is_edge=shape.is_edge,
+    )
+    shape.mesh.export(folder / "gt.ply")
+    np.save(folder / "edges_gt.npy", shape.edge_samples.astype(np.float32))
+    return folder
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="write a noisy synthetic cloud as a binary PLY")
-    parser.add_argument("shape", choices=SHAPES)
+    parser = argparse.ArgumentParser(
+        description="write a noisy cloud of a synthetic shape as a binary PLY, or of any mesh as a shape folder"
+    )
+    parser.add_argument("shape", nargs="?", choices=SHAPES)
+    parser.add_argument("--mesh", type=Path, help="sample this mesh file instead of a named shape")
     parser.add_argument("--points", type=int, default=16_384)
     parser.add_argument("--noise", type=float, default=NOISE)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=Path, help="the cloud, a binary PLY")
+    parser.add_argument("--folder", type=Path, help="a shape folder: points, labels, gt.ply, edges_gt.npy")
     args = parser.parse_args(argv)
-    write_ply(args.out, sample_shape(args.shape, args.points, args.noise, args.seed).points)
+    if (args.shape is None) == (args.mesh is None) or (args.out is None) == (args.folder is None):
+        parser.error("give a shape or --mesh, and --out or --folder")
+    if args.mesh is not None:
+        loaded = trimesh.load(args.mesh, force="mesh")
+        if not isinstance(loaded, trimesh.Trimesh) or not len(loaded.faces):
+            parser.error(f"{args.mesh} holds no triangle mesh")
+        mesh = unit_frame(loaded)
+        shape = sample_mesh(mesh, args.mesh.stem, args.points, args.noise, args.seed)
+    else:
+        shape = sample_shape(args.shape, args.points, args.noise, args.seed)
+    if args.folder is not None:
+        write_shape_folder(shape, args.folder)
+    else:
+        write_ply(args.out, shape.points)
 
 
 if __name__ == "__main__":
