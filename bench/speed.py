@@ -447,8 +447,7 @@ def large_cloud(shape_dir: Path, cache: Path, label: str, count: int) -> tuple[P
     import trimesh
 
     from core.ply import read_points
-    from evaluation.metrics import sample_triangles
-    from evaluation.shapes import EDGE_DELTA, _distance_to_segments, _smooth_normals, sharp_edges, write_ply
+    from evaluation.shapes import sample_mesh, write_ply
 
     folder = cache / shape_dir.name
     points_file, labels = f"points_{label}.ply", f"labels_{label}.npz"
@@ -459,16 +458,11 @@ def large_cloud(shape_dir: Path, cache: Path, label: str, count: int) -> tuple[P
     for name in ("gt.ply", "edges_gt.npy"):
         shutil.copyfile(shape_dir / name, folder / name)
     mesh = trimesh.load(shape_dir / "gt.ply", force="mesh", process=False)
-    rng = np.random.default_rng(count)
-    clean, face_index, weights = sample_triangles(mesh.triangles, count, rng)
-    write_ply(folder / points_file, clean + rng.normal(0.0, NOISE, size=clean.shape))
+    shape = sample_mesh(mesh, shape_dir.name, count, NOISE, seed=count)
+    write_ply(folder / points_file, shape.points)
     points = read_points(folder / points_file, max_points=10**9)  # float32, as edgerecon reads them
     np.savez(
-        folder / labels,
-        points=points,
-        points_clean=clean,
-        normals=_smooth_normals(mesh, face_index, weights),
-        is_edge=_distance_to_segments(clean, sharp_edges(mesh)) <= EDGE_DELTA,
+        folder / labels, points=points, points_clean=shape.clean_points, normals=shape.normals, is_edge=shape.is_edge
     )
     return folder, points_file
 
