@@ -25,6 +25,10 @@ from evaluation.sample_data import evaluate_shape
 from evaluation.shapes import sample_shape
 
 SMALL = {"width": 64, "depth": 2, "batch_points": 256, "resolution": 32}
+# The quality tests' short schedule: a fit of a 16 k-point cube in about 20 s on two shared cores.
+# IGR's sharpness (beta 100) puts this small network's edge points at |Δf| 20 and up; a short
+# schedule ends at a higher learning rate than the default's.
+SHORT = {"iterations": 400, "width": 128, "depth": 3, "beta": 100, "resolution": 96, "final_learning_rate": 2.5e-4}
 
 
 # --- losses -----------------------------------------------------------------------------------
@@ -301,22 +305,9 @@ def fitted_cube():
     from core.reconstruct import reconstruct
 
     shape = sample_shape("cube", n_points=8000, noise=0.005, seed=0)
-    # IGR's sharpness (beta 100) puts this small network's edge points at |Δf| 20 and up; a short
-    # schedule ends at a higher learning rate than the default's. Marching cubes and the |Δf|
-    # threshold: what is tested here is the fit (the sharp extraction is tested on the shared cube
-    # with the defaults, and on analytic shapes in test_dual.py).
-    params = FitParams(
-        extraction="mc",
-        iterations=400,
-        width=128,
-        depth=3,
-        beta=100,
-        tau=20,
-        batch_points=1024,
-        resolution=96,
-        final_learning_rate=2.5e-4,
-        seed=0,
-    )
+    # Marching cubes and the |Δf| threshold: what is tested here is the fit (the sharp extraction is
+    # tested on the shared cube with the defaults, and on analytic shapes in test_dual.py).
+    params = FitParams(extraction="mc", tau=20, batch_points=1024, seed=0, **SHORT)
     return shape, reconstruct(shape.points, params)
 
 
@@ -382,8 +373,8 @@ def test_an_open_cube_gives_one_outward_surface_that_follows_its_points_and_clos
     """Issue 9: a cloud that does not enclose its volume (the cube's top face and the top 0.05 of its
     walls never sampled) gives one closed surface, with no inner shell or sheet left from the
     initial sphere, that lies near the points everywhere but across the unsampled gap, with no
-    normal pointing inward. The small schedule of ``fitted_cube`` (the free-space map that takes
-    the open inside back is the same at any network size). Measured (2026-12-03, fit seeds 0 and
+    normal pointing inward. The short schedule (the free-space map that takes the open inside back
+    is the same at any network size). Measured (2026-12-03, fit seeds 0 and
     1): one component, exact d_C 0.0041-0.0046, d_H 0.035-0.045, normals 4.0-4.3° mean, none
     inward; the mesh farther than 0.04 from every point (sampling gaps reach 0.035) is 17 % of its
     area, all above z = 0.44: the cap."""
@@ -395,8 +386,7 @@ def test_an_open_cube_gives_one_outward_surface_that_follows_its_points_and_clos
 
     shape = sample_shape("cube", n_points=16_384, seed=0)
     keep = kept_rows(shape.clean_points, CUTS["cube"])
-    params = FitParams(iterations=400, width=128, depth=3, beta=100, resolution=96, final_learning_rate=2.5e-4)
-    result = reconstruct(shape.points[keep], params)
+    result = reconstruct(shape.points[keep], FitParams(**SHORT))
     mesh = result.mesh
     assert mesh.is_watertight and len(mesh.split(only_watertight=False)) == 1
     surface = surface_distances(mesh, shape.mesh, count=20_000)
