@@ -506,7 +506,10 @@ def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(sta
 
     # A stream that ends before the final state: the page polls instead, and gets there.
     page.click("#reset-params")
+    sent = len(app.state.forms)
     submit(page, EXAMPLE_CLOUD, {"iterations": 50, "seed": 1})
+    # The job panel is already open from the first job: wait for this job's form to arrive.
+    wait_for(lambda: len(app.state.forms) > sent, 10, 0.05, "the second job's form")
     assert app.state.forms[-1] == {"iterations": "50", "seed": "1"}
     wait_status(page, "succeeded", timeout=20)
     assert "the event stream ended early" in page.inner_text("#job-updates")
