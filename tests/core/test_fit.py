@@ -2,8 +2,7 @@
 
 The quality tests fit a noisy synthetic cube (evaluation.shapes, whose sharp edges are known) with a
 network and schedule small enough for a few seconds on two shared cores, and hold the result to
-bounds measured on it with a margin; with ../shared/data present, its cube is fitted with the
-shipped defaults and held to the fitting issue's acceptance bounds.
+bounds measured on it with a margin. The fit with the shipped defaults is in test_defaults.py.
 """
 
 from __future__ import annotations
@@ -20,8 +19,7 @@ from core.losses import free_space_loss, laplacian_loss, normal_loss
 from core.params import FitParams
 from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
-from evaluation.metrics import edge_chamfer, edge_scores, normal_errors, surface_distances
-from evaluation.sample_data import evaluate_shape
+from evaluation.metrics import edge_scores, normal_errors, surface_distances
 from evaluation.shapes import sample_shape
 
 SMALL = {"width": 64, "depth": 2, "batch_points": 256, "resolution": 32}
@@ -332,41 +330,23 @@ def test_small_fit_of_a_cube_finds_its_edges(fitted_cube):
     assert result.edge_laplacian.min() > result.tau
 
 
-def test_shared_cube_with_the_defaults_meets_the_fitting_issue(shared_data):
-    """The acceptance run of the fitting issue: exact d_C within 0.02, watertight, outward normals,
-    edge points on the cube's edges (here held to much tighter bounds than that)."""
-    from core.ply import read_points
-    from core.reconstruct import reconstruct
-
-    points = read_points(shared_data / "cube" / "points.ply")
-    result = reconstruct(points, FitParams())
-    scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shared_data / "cube")
-    assert result.mesh.is_watertight
-    assert scores["chamfer_exact"] < 0.0025 and scores["hausdorff_exact"] < 0.03, scores
-    assert scores["normal_inward_share"] == 0 and scores["normal_mean_oriented"] < 5, scores
-    assert scores["edge_precision"] > 0.6 and scores["ecd"] < 0.02, scores
-    # The sharp extraction (measured 0.0114; marching cubes 0.0179) and its edge curves: the
-    # cube's 12 edges, each sample within a few thousandths of a true edge.
-    assert scores["hausdorff_exact"] < 0.014 and scores["edge_iou"] > 0.55, scores
-    curve_points = np.concatenate([curve.points for curve in result.curves])
-    assert edge_chamfer(curve_points, np.load(shared_data / "cube" / "edges_gt.npy")) < 0.005
-
-
-def test_a_smooth_scan_like_blob_with_the_defaults_flags_at_most_one_percent_as_edges():
+def test_a_smooth_scan_like_blob_flags_almost_no_point_as_an_edge():
     """Issue 9: no false edges on real smooth surfaces. The blob's narrow bumps have flat flanks and
-    tips of curvature radius 0.03 to 0.05, which the side planes took for ridges (1.40 % of its
-    points flagged before core.features.BAND_WIDTH; 0.56 % with it, d_H 0.0125; with the half batch
-    of core.fit.HALF_BATCH_SHARE: 0.29 %, d_C 0.0008, d_H 0.0064, normals 2.1°)."""
+    tips of curvature radius 0.03 to 0.05, which the side planes took for ridges before
+    core.features.BAND_WIDTH. The short schedule (the defaults flag 0.29 % of the points, d_H
+    0.0064: docs/benchmarks.md). Measured (2026-12-03, fit seeds 0 and 1): 0.13-0.24 % flagged,
+    exact d_C 0.0018-0.0019, d_H 0.025-0.039, normals 3.0-3.2° mean, none inward; without the band
+    test (BAND_WIDTH infinite, or 0.08) 0.60-0.79 % flagged, which fails here."""
     from core.reconstruct import reconstruct
 
     shape = sample_shape("bumps", n_points=16_384, seed=0)
-    result = reconstruct(shape.points, FitParams())
-    assert len(result.edge_indices) <= 0.01 * len(shape.points), len(result.edge_indices)
+    result = reconstruct(shape.points, FitParams(**SHORT))
+    assert len(result.edge_indices) <= 0.004 * len(shape.points), len(result.edge_indices)
     assert result.mesh.is_watertight
     surface = surface_distances(result.mesh, shape.mesh, count=20_000)
-    assert surface["chamfer_exact"] < 0.0015 and surface["hausdorff_exact"] < 0.02, surface
+    assert surface["chamfer_exact"] < 0.0025 and surface["hausdorff_exact"] < 0.05, surface
     normals = normal_errors(result.normals, shape.normals)
-    assert normals["normal_inward_share"] == 0 and normals["normal_mean_oriented"] < 3, normals
+    assert normals["normal_inward_share"] == 0 and normals["normal_mean_oriented"] < 4, normals
 
 
 def test_an_open_cube_gives_one_outward_surface_that_follows_its_points_and_closes_the_gap():
