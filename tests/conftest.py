@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -9,6 +10,20 @@ import pytest
 
 from tests.helpers import EXAMPLE_CLOUD, SHARED_DATA
 from worker.redis_server import RedisServer
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under ``pytest -n N`` (pytest-xdist), each worker's torch gets its share of the cores.
+
+    Two workers each running torch on every core would oversubscribe them: OpenMP's threads then
+    wait on one another, and a fit slows several times over. (Processes the tests start set their
+    own threads, see ``tests.helpers.TEST_ENV``.)
+    """
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        import torch
+
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 
 
 @pytest.fixture
