@@ -15,9 +15,9 @@ from worker.redis_server import RedisServer
 def pytest_configure(config: pytest.Config) -> None:
     """Under ``pytest -n N`` (pytest-xdist), each worker's torch gets its share of the cores.
 
-    Two workers each running torch on every core would oversubscribe them: OpenMP's threads then
-    wait on one another, and a fit slows several times over. (Processes the tests start set their
-    own threads, see ``tests.helpers.TEST_ENV``.)
+    Workers each running torch on every core would oversubscribe them, and OpenMP's threads then
+    wait on one another (small networks ran 10 to 50 times slower so: tests/core/test_network.py).
+    Processes the tests start set their own threads (``tests.helpers.TEST_ENV``).
     """
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
