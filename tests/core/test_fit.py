@@ -336,7 +336,7 @@ def test_a_smooth_scan_like_blob_flags_almost_no_point_as_an_edge():
     core.features.BAND_WIDTH. The short schedule (the defaults flag 0.29 % of the points, d_H
     0.0064: docs/benchmarks.md). Measured (2026-12-03, fit seeds 0 and 1): 0.13-0.24 % flagged,
     exact d_C 0.0018-0.0019, d_H 0.025-0.039, normals 3.0-3.2° mean, none inward; without the band
-    test (BAND_WIDTH infinite, or 0.08) 0.60-0.79 % flagged, which fails here."""
+    test (BAND_WIDTH infinite, or 0.08; seed 0) 0.60 and 0.79 % flagged, which fails here."""
     from core.reconstruct import reconstruct
 
     shape = sample_shape("bumps", n_points=16_384, seed=0)
