@@ -2,9 +2,10 @@
 
 A library call such as ``core.fit.fit`` changes nothing outside its own objects. What belongs to
 the whole process (torch's thread count, whether the network's kernels are compiled, how glibc's
-malloc keeps freed memory) is set here, by the entry points: ``edgerecon fit`` and the worker
-call ``configure`` once at start. A program that never calls it gets torch's own thread count,
-compiled kernels and glibc's default malloc.
+malloc keeps freed memory, whether denormal floats are flushed) is set here, by the entry points:
+``edgerecon fit`` and the worker call ``configure`` once at start, before any torch work. A program
+that never calls it gets torch's own thread count, compiled kernels, glibc's default malloc and
+denormal arithmetic.
 """
 
 from __future__ import annotations
@@ -20,17 +21,35 @@ def configure(*, compile: bool, threads: int | None = None, tune_malloc: bool = 
     ``compile``: compile the network's element-wise kernels with ``torch.compile`` at their first
     use (25-45 s the first time on a machine, about 5 s from the disk cache), or run them
     eagerly. ``threads``: torch's thread count (None leaves it). ``tune_malloc``: keep freed
-    memory for reuse (``keep_freed_memory``).
+    memory for reuse (``keep_freed_memory``). Denormal floats are flushed to zero
+    (``flush_denormals``), which must come before torch's first parallel operation.
     """
     import torch
 
     from core.network import use_compiled_kernels
 
+    flush_denormals()
     if threads is not None:
         torch.set_num_threads(threads)
     use_compiled_kernels(compile)
     if tune_malloc:
         keep_freed_memory()
+
+
+def flush_denormals() -> None:
+    """Treat denormal floats (below 1.2e-38 in float32) as zero, in this thread and the threads
+    started after it.
+
+    With β = 200 a hidden unit's β-scaled pre-activation reaches ±100, where σ(u), e^u and their
+    products are denormal, and each operation on one takes the CPU's slow path: the compiled
+    kernels ran up to 3 times slower and a default fit 14 % (docs/benchmarks.md). Flushed, such a
+    value is 0, as it nearly is already.
+    The flag is per thread and a new thread inherits it: torch's OpenMP pool starts at its first
+    parallel operation, after which a call here reaches only the calling thread.
+    """
+    import torch
+
+    torch.set_flush_denormal(True)
 
 
 def keep_freed_memory() -> None:

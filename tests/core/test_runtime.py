@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import ctypes
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from core import network, runtime
 from core.fit import fit
 from core.params import FitParams
 from evaluation.shapes import sample_shape
+from tests.helpers import ROOT
 
 MIB = 1024 * 1024
 
@@ -43,6 +46,30 @@ def test_configure_sets_the_threads_the_kernels_and_glibcs_malloc(process_state)
     assert process_state == [(-3, 32 * MIB), (-1, 1024 * MIB)]  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
     runtime.configure(compile=True)
     assert network._kernels.compiled is True
+
+
+# A fresh process: how many of a million denormal floats (1e-39) survive a multiplication by one,
+# which torch splits between its two threads, after configure or without it.
+_DENORMALS_LEFT = """
+import sys, torch
+from core.runtime import configure
+if sys.argv[1] == "configure":
+    configure(compile=False, threads=2, tune_malloc=False)
+torch.set_num_threads(2)
+print(int((torch.full((1 << 20,), 1e-39) * 1.0 != 0).sum()))
+"""
+
+
+def test_configure_flushes_denormals_in_every_thread_torch_computes_on():
+    left = {
+        how: int(
+            subprocess.run(
+                [sys.executable, "-c", _DENORMALS_LEFT, how], cwd=ROOT, capture_output=True, text=True, check=True
+            ).stdout
+        )
+        for how in ("configure", "plain")
+    }
+    assert left == {"configure": 0, "plain": 1 << 20}
 
 
 def test_configure_leaves_threads_and_malloc_alone_when_asked(process_state):
