@@ -236,6 +236,19 @@ def test_fit_is_deterministic_for_a_seed():
     assert not all(torch.equal(a, c) for a, c in zip(first.parameters(), other.parameters()))
 
 
+def test_the_fits_fused_adam_takes_the_steps_of_the_plain_loop(monkeypatch):
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    params = FitParams(iterations=20, precision="float32", **SMALL)
+    start = fit(points, params.model_copy(update={"iterations": 1}))
+    fused = fit(points, params)
+    plain_adam = torch.optim.Adam
+    monkeypatch.setattr(torch.optim, "Adam", lambda *args, **options: plain_adam(*args, **{**options, "fused": False}))
+    plain = fit(points, params)
+    for first, a, b in zip(start.parameters(), fused.parameters(), plain.parameters()):
+        moved = (a - first).abs().max()
+        assert (a - b).abs().max() <= 1e-4 * moved  # rounding, against the 19 steps' change
+
+
 def test_a_cloud_larger_than_the_fit_takes_is_fitted_to_its_seeded_subsample(monkeypatch):
     monkeypatch.setattr(fit_module, "FIT_POINTS", 600)
     points = sample_shape("cube", n_points=1000, seed=0).points
