@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,6 +25,17 @@ def pytest_configure(config: pytest.Config) -> None:
         import torch
 
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+
+
+@pytest.fixture(autouse=True)
+def denormals_back() -> Iterator[None]:
+    """Denormal floats back on after every test: ``core.runtime.configure``, which some tests run
+    in this process as ``edgerecon fit`` does, flushes them in the calling thread, and hypothesis
+    (the API fuzz, in the same worker later) refuses to generate floats without them."""
+    yield
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_flush_denormal(False)
 
 
 @pytest.fixture
