@@ -14,8 +14,9 @@ import torch
 from core import fit as fit_module
 from core import sampling
 from core.errors import Cancelled
-from core.fit import fit, fit_rows
+from core.fit import centre_level, fit, fit_rows
 from core.losses import free_space_loss, laplacian_loss, normal_loss
+from core.network import ImplicitNetwork
 from core.params import FitParams
 from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
@@ -247,6 +248,25 @@ def test_the_fits_fused_adam_takes_the_steps_of_the_plain_loop(monkeypatch):
     for first, a, b in zip(start.parameters(), fused.parameters(), plain.parameters()):
         moved = (a - first).abs().max()
         assert (a - b).abs().max() <= 1e-4 * moved  # rounding, against the 19 steps' change
+
+
+def test_centre_level_moves_an_offset_surface_back_into_the_middle_of_the_points():
+    points = torch.as_tensor(sample_shape("sphere", n_points=4000, seed=0).points, dtype=torch.float32)
+    model = ImplicitNetwork(64, 2, 100.0, radius=0.45, generator=torch.Generator().manual_seed(0))
+    assert abs(centre_level(model, points)) >= 0.01  # the initial sphere is not the sampled one
+    with torch.no_grad():
+        assert abs(float(model(points).median())) <= 1e-6
+        model.layers[-1].bias += 0.03  # every point 0.03 outside now: the surface shrunk
+    assert centre_level(model, points) == pytest.approx(0.03, abs=1e-6)
+    with torch.no_grad():
+        assert abs(float(model(points).median())) <= 1e-6
+
+
+def test_a_fit_ends_with_f_at_its_points_centred_on_zero():
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    model = fit(points, FitParams(iterations=5, precision="float32", **SMALL))
+    with torch.no_grad():
+        assert abs(float(model(torch.as_tensor(points, dtype=torch.float32)).median())) <= 1e-6
 
 
 def test_a_cloud_larger_than_the_fit_takes_is_fitted_to_its_seeded_subsample(monkeypatch):
