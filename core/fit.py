@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import cast
 
 import numpy as np
 import torch
@@ -147,7 +148,8 @@ def centre_level(model: ImplicitNetwork, points: Tensor) -> float:
     median puts the surface back in the middle of the points; a good fit moves by a few ten-thousandths.
     """
     median = float(model(points).median())
-    model.layers[-1].bias -= median
+    last = cast(torch.nn.Linear, model.layers[-1])
+    last.bias.sub_(median)
     return median
 
 
