@@ -20,25 +20,42 @@ DIRECTIONS = tuple(d for d in itertools.product((-1, 0, 1), repeat=3) if d != (0
 def escape_counts(blocked: np.ndarray) -> np.ndarray:
     """(n0, n1, n2) uint8: for each voxel, in how many of the 26 ``DIRECTIONS`` the ray from it
     (stepping one voxel along the direction at a time) leaves the grid without entering a voxel of
-    ``blocked`` (a (n0, n1, n2) bool array; the voxel itself does not count).
-
-    One sweep per direction, a slice at a time: a voxel's ray is blocked when its next voxel is
-    blocked or that voxel's ray is, so the whole grid costs 26 passes over it (0.1 s at 90³).
-    """
+    ``blocked`` (a (n0, n1, n2) bool array; the voxel itself does not count)."""
     counts = np.zeros(blocked.shape, dtype=np.uint8)
     for direction in DIRECTIONS:
-        axis = max(i for i in range(3) if direction[i] != 0)  # sweep along an axis the ray advances on
-        order = [i for i in range(3) if i != axis] + [axis]
-        grid = np.ascontiguousarray(np.moveaxis(np.transpose(blocked, order), 2, 0))  # slices first
-        step = direction[axis]
-        (source0, target0), (source1, target1) = (_overlap(grid.shape[k + 1], direction[order[k]]) for k in (0, 1))
-        hit = np.zeros_like(grid)  # hit[i]: the ray from each voxel of slice i meets a blocked voxel
-        ahead = np.empty_like(grid[0])
-        for i in range(grid.shape[0] - 2, -1, -1) if step > 0 else range(1, grid.shape[0]):
-            np.logical_or(grid[i + step], hit[i + step], out=ahead)
-            hit[i][target0, target1] = ahead[source0, source1]  # past the edge: left the grid, not blocked
-        counts += ~np.transpose(np.moveaxis(hit, 0, 2), np.argsort(order))
+        counts += _escapes(blocked, direction)
     return counts
+
+
+def sees_through(blocked: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) bool: the voxels whose rays leave the grid unblocked both ways along one of the
+    13 lines of ``DIRECTIONS``: the space of a tunnel open at both ends (a through-hole), which the
+    inside of an open part, seeing out only through its opening, is not."""
+    through = np.zeros(blocked.shape, dtype=bool)
+    for direction in DIRECTIONS[: len(DIRECTIONS) // 2]:  # the other half are their opposites
+        opposite = tuple(-step for step in direction)
+        through |= _escapes(blocked, direction) & _escapes(blocked, opposite)
+    return through
+
+
+def _escapes(blocked: np.ndarray, direction: tuple[int, ...]) -> np.ndarray:
+    """(n0, n1, n2) bool: whether the ray from each voxel along ``direction`` leaves the grid
+    without entering a voxel of ``blocked``.
+
+    One sweep, a slice at a time: a voxel's ray is blocked when its next voxel is blocked or that
+    voxel's ray is, so each direction costs one pass over the grid (26 of them: 0.1 s at 90³).
+    """
+    axis = max(i for i in range(3) if direction[i] != 0)  # sweep along an axis the ray advances on
+    order = [i for i in range(3) if i != axis] + [axis]
+    grid = np.ascontiguousarray(np.moveaxis(np.transpose(blocked, order), 2, 0))  # slices first
+    step = direction[axis]
+    (source0, target0), (source1, target1) = (_overlap(grid.shape[k + 1], direction[order[k]]) for k in (0, 1))
+    hit = np.zeros_like(grid)  # hit[i]: the ray from each voxel of slice i meets a blocked voxel
+    ahead = np.empty_like(grid[0])
+    for i in range(grid.shape[0] - 2, -1, -1) if step > 0 else range(1, grid.shape[0]):
+        np.logical_or(grid[i + step], hit[i + step], out=ahead)
+        hit[i][target0, target1] = ahead[source0, source1]  # past the edge: left the grid, not blocked
+    return ~np.transpose(np.moveaxis(hit, 0, 2), np.argsort(order))
 
 
 def _overlap(size: int, shift: int) -> tuple[slice, slice]:

@@ -5,19 +5,32 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.visibility import DIRECTIONS, escape_counts
+from core.visibility import DIRECTIONS, escape_counts, sees_through
+
+
+def escapes_by_marching(blocked: np.ndarray, voxel: tuple[int, ...], direction: tuple[int, ...]) -> bool:
+    """The slow, obviously right reference: march the ray voxel by voxel."""
+    at = np.array(voxel) + direction
+    while np.all(at >= 0) and np.all(at < blocked.shape) and not blocked[tuple(at)]:
+        at += direction
+    return not (np.all(at >= 0) and np.all(at < blocked.shape))
 
 
 def escape_counts_by_marching(blocked: np.ndarray) -> np.ndarray:
-    """The slow, obviously right reference: march every ray voxel by voxel."""
     counts = np.zeros(blocked.shape, dtype=np.uint8)
     for voxel in np.ndindex(blocked.shape):
-        for direction in DIRECTIONS:
-            at = np.array(voxel) + direction
-            while np.all(at >= 0) and np.all(at < blocked.shape) and not blocked[tuple(at)]:
-                at += direction
-            counts[voxel] += not (np.all(at >= 0) and np.all(at < blocked.shape))
+        counts[voxel] = sum(escapes_by_marching(blocked, voxel, direction) for direction in DIRECTIONS)
     return counts
+
+
+def sees_through_by_marching(blocked: np.ndarray) -> np.ndarray:
+    through = np.zeros(blocked.shape, dtype=bool)
+    for voxel in np.ndindex(blocked.shape):
+        through[voxel] = any(
+            escapes_by_marching(blocked, voxel, d) and escapes_by_marching(blocked, voxel, tuple(-np.array(d)))
+            for d in DIRECTIONS
+        )
+    return through
 
 
 def test_there_are_26_directions_each_with_its_opposite():
@@ -30,6 +43,23 @@ def test_escape_counts_are_those_of_marching_every_ray_on_random_grids(seed):
     rng = np.random.default_rng(seed)
     blocked = rng.random((7, 9, 8)) < rng.uniform(0.05, 0.4)
     np.testing.assert_array_equal(escape_counts(blocked), escape_counts_by_marching(blocked))
+
+
+@pytest.mark.parametrize(("seed", "density"), [(0, 0.3), (1, 0.4), (2, 0.5)])
+def test_sees_through_is_marching_both_ways_along_a_line_on_random_grids(seed, density):
+    blocked = np.random.default_rng(seed).random((10, 9, 11)) < density
+    expected = sees_through_by_marching(blocked)
+    assert 0 < expected.sum() < expected.size  # both answers occur
+    np.testing.assert_array_equal(sees_through(blocked), expected)
+
+
+def test_a_tube_is_seen_through_and_a_cup_is_not():
+    blocked = np.zeros((12, 12, 14), dtype=bool)
+    blocked[2:10, 2:10, 2:12] = True
+    blocked[4:8, 4:8, :] = False  # a square bore along z, through the block
+    assert sees_through(blocked)[4:8, 4:8, 2:12].all()
+    blocked[4:8, 4:8, 2] = True  # close its bottom: a cup, open at the top only
+    assert not sees_through(blocked)[4:8, 4:8, 3:12].any()
 
 
 def test_an_empty_grid_sees_out_every_way_and_a_closed_box_hides_its_inside():
