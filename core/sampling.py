@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from core.errors import CancelCheck, check_cancel
-from core.visibility import escape_counts
+from core.visibility import escape_bits, escape_counts, tunnels
 
 # The shape fills [-0.5, 0.5]^3 in the unit frame; uniform samples cover a slightly larger box.
 BOX_HALF_SIZE = 0.6
@@ -39,7 +39,9 @@ ORIENT_VOXELS = 3
 # outside a part sees it in 9 to 26 (mostly 17 or more), the inside of a cube whose top was not
 # sampled in at most 9; pockets and bores of closed parts see little too, and the walls' votes
 # tell them apart. A region is taken back as inside when at least OPEN_MIN_VOTES wall points, and
-# OPEN_VOTE_RATIO times as many as say otherwise, have open outside space behind them.
+# OPEN_VOTE_RATIO times as many as say otherwise, have open outside space behind them. A
+# through-bore is never a candidate: it sees out both ways along its axis and nowhere else, which
+# the inside of an open part, seeing out only through its opening, cannot.
 OPEN_ESCAPE_MAX = 11
 OPEN_MIN_VOTES = 32
 OPEN_VOTE_RATIO = 3
@@ -241,8 +243,16 @@ class FreeSpace:
         when open outside space (reachable, not a candidate) lies on its other side, outside when
         the solid (-1) does. A pocket in a closed part has the solid behind its walls; the inside
         of an open box has the outside behind them.
+
+        Tunnels (``core.visibility.tunnels``) and the voxels next to them are never candidates: a
+        through-bore of a part whose base is open sees little sky, joins the inside under the
+        opening and would be taken back with it (box_hole without its base: 7,616 voxels of its
+        bore, and the normals of its wall flipped). The bore's layer of voxels along its noisy
+        walls sees out along no line, hence the dilation.
         """
-        candidates = (sign == 1) & (escape_counts(sign == 0) <= OPEN_ESCAPE_MAX)
+        escapes = escape_bits(sign == 0)
+        walled_in = ndimage.binary_dilation(tunnels(escapes))
+        candidates = (sign == 1) & (escape_counts(escapes) <= OPEN_ESCAPE_MAX) & ~walled_in
         regions, count = ndimage.label(candidates, structure=np.ones((3, 3, 3), dtype=bool))
         if count == 0:
             return sign

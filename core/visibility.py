@@ -13,29 +13,39 @@ import itertools
 
 import numpy as np
 
-# The 26 directions to a voxel's neighbours (13 lines, both ways).
+# The 26 directions to a voxel's neighbours (13 lines, both ways): DIRECTIONS[25 - i] is the
+# opposite of DIRECTIONS[i].
 DIRECTIONS = tuple(d for d in itertools.product((-1, 0, 1), repeat=3) if d != (0, 0, 0))
 
 
-def escape_counts(blocked: np.ndarray) -> np.ndarray:
-    """(n0, n1, n2) uint8: for each voxel, in how many of the 26 ``DIRECTIONS`` the ray from it
-    (stepping one voxel along the direction at a time) leaves the grid without entering a voxel of
-    ``blocked`` (a (n0, n1, n2) bool array; the voxel itself does not count)."""
-    counts = np.zeros(blocked.shape, dtype=np.uint8)
-    for direction in DIRECTIONS:
-        counts += _escapes(blocked, direction)
-    return counts
+def escape_bits(blocked: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) uint32: bit i of a voxel is set when the ray from it along ``DIRECTIONS[i]``
+    (stepping one voxel at a time) leaves the grid without entering a voxel of ``blocked`` (a
+    (n0, n1, n2) bool array; the voxel itself does not count). One word per voxel keeps every
+    direction for ``escape_counts`` and ``tunnels`` at a sixth of the memory of 26 bool grids."""
+    bits = np.zeros(blocked.shape, dtype=np.uint32)
+    for i, direction in enumerate(DIRECTIONS):
+        bits |= _escapes(blocked, direction).astype(np.uint32) << np.uint32(i)
+    return bits
 
 
-def sees_through(blocked: np.ndarray) -> np.ndarray:
-    """(n0, n1, n2) bool: the voxels whose rays leave the grid unblocked both ways along one of the
-    13 lines of ``DIRECTIONS``: the space of a tunnel open at both ends (a through-hole), which the
-    inside of an open part, seeing out only through its opening, is not."""
-    through = np.zeros(blocked.shape, dtype=bool)
-    for direction in DIRECTIONS[: len(DIRECTIONS) // 2]:  # the other half are their opposites
-        opposite = tuple(-step for step in direction)
-        through |= _escapes(blocked, direction) & _escapes(blocked, opposite)
-    return through
+def escape_counts(bits: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) uint8: in how many directions each voxel sees out, from ``escape_bits``."""
+    return np.bitwise_count(bits).astype(np.uint8)
+
+
+def tunnels(bits: np.ndarray) -> np.ndarray:
+    """(n0, n1, n2) bool, from ``escape_bits``: the voxels that see out both ways along one of the
+    13 lines of ``DIRECTIONS`` and in none of the directions square to it: the space of a bore
+    open at both ends, walled in all round. The inside of an open part sees out through its
+    opening only; the layer of it level with the opening's rim, which sees out sideways over the
+    rim both ways, sees out upwards too, so it is no tunnel."""
+    inside = np.zeros(bits.shape, dtype=bool)
+    for line, direction in enumerate(DIRECTIONS[: len(DIRECTIONS) // 2]):  # the rest are opposites
+        both_ways = np.uint32((1 << line) | (1 << (len(DIRECTIONS) - 1 - line)))
+        square = np.uint32(sum(1 << i for i, other in enumerate(DIRECTIONS) if np.dot(other, direction) == 0))
+        inside |= ((bits & both_ways) == both_ways) & ((bits & square) == 0)
+    return inside
 
 
 def _escapes(blocked: np.ndarray, direction: tuple[int, ...]) -> np.ndarray:

@@ -160,6 +160,46 @@ def test_free_space_of_an_open_cube_takes_its_inside_back_given_the_walls_normal
     assert np.mean(sides != 0) > 0.9  # the walls are oriented again, not outside on both sides
 
 
+def open_bored_box(n_points: int = 6000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A noisy box (1 × 0.8 × 0.5) with a vertical through-bore of radius 0.2, its base (clean z
+    below -0.2) left unsampled, as box_hole's open variant: points (N, 3) and their true outward
+    normals (N, 3). The bore joins the inside to the opening."""
+    rng = np.random.default_rng(seed)
+    half = np.array([0.5, 0.4, 0.25])
+    radius = 0.2
+    box = rng.uniform(-half, half, (4 * n_points, 3))
+    face = rng.integers(0, 3, len(box))
+    side = rng.choice([-1.0, 1.0], len(box))
+    box[np.arange(len(box)), face] = side * half[face]  # onto a face; faces drawn by area below
+    area = np.array([half[1] * half[2], half[0] * half[2], half[0] * half[1]])
+    keep = rng.random(len(box)) < area[face] / area.max()
+    keep &= (face != 2) | (np.hypot(box[:, 0], box[:, 1]) > radius)  # the bore's openings
+    box, normals = box[keep], np.eye(3)[face[keep]] * side[keep, None]
+    wall_count = round(len(box) * (2 * np.pi * radius * 2 * half[2]) / (8 * (area.sum() - np.pi * radius**2 / 2)))
+    angle = rng.uniform(0, 2 * np.pi, wall_count)
+    wall = np.c_[radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-half[2], half[2], wall_count)]
+    wall_normals = -np.c_[np.cos(angle), np.sin(angle), np.zeros(wall_count)]  # out of the solid: into the bore
+    clean, normals = np.r_[box, wall], np.r_[normals, wall_normals]
+    kept = clean[:, 2] >= -0.2
+    rows = rng.permutation(np.flatnonzero(kept))[:n_points]
+    return clean[rows] + rng.normal(0, 0.005, (len(rows), 3)), normals[rows]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_free_space_of_an_open_box_leaves_its_through_bore_outside_and_takes_the_solid_back(seed):
+    points, true_normals = open_bored_box(seed=seed)
+    normals = sampling.plane_normals(points)
+    space = FreeSpace(points, normals=normals)
+    grid = torch.stack(torch.meshgrid(*[torch.linspace(-1, 1, 5)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
+    in_bore = grid * torch.tensor([0.07, 0.07, 0.15])  # clear of its walls (r 0.2) and ends by four voxels
+    in_solid = grid * torch.tensor([0.05, 0.05, 0.1]) + torch.tensor([0.3, 0.22, 0.0])  # as clear of all walls
+    assert (space.distance_and_sign(in_bore)[1] == 1).all()  # it sees out both ways: not the solid
+    assert (space.distance_and_sign(in_solid)[1] == -1).all()
+    sides = space.outward(points, normals)
+    outward = np.einsum("ij,ij->i", normals * sides[:, None], true_normals)
+    assert np.mean(sides != 0) > 0.95 and (outward[sides != 0] > 0).mean() > 0.995
+
+
 @pytest.mark.parametrize("name", ["cube", "l_shape", "cylinder", "sphere"])
 def test_free_space_of_a_closed_cloud_is_the_flood_fills_with_or_without_normals(name):
     points = sample_shape(name, n_points=6000, seed=2).points  # the L's notch sees little sky, and stays outside
