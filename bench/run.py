@@ -78,6 +78,8 @@ CLOUDS = [
     "sphere/open",
     "l_bracket/open",
     "box_hole/open",
+    "idler_riser/open",
+    "flange/open",
 ]
 COLUMNS = [
     ("d_C", "chamfer", "{:.4f}"),

@@ -34,12 +34,16 @@ class Cut(NamedTuple):
 
 # One cut per shape, each removing a face or the end of a part: the top of the cube (20 % of its
 # points), a cap of the sphere, the end of the bracket's long leg, the base of the box with a
-# through-hole (the hole then joins the inside to the opening, the hardest case here).
+# through-hole (the hole then joins the inside to the opening, the hardest case here), and the
+# bases of the real part idler_riser (30 % of its points; its three holes join the inside to the
+# opening) and of the thin flange (43 %: a plate scanned lying on a table, its holes open below).
 CUTS = {
     "cube": Cut(axis=2, side=1, offset=0.45),
     "sphere": Cut(axis=2, side=1, offset=0.35),
     "l_bracket": Cut(axis=0, side=1, offset=0.45),
     "box_hole": Cut(axis=2, side=-1, offset=0.2),
+    "idler_riser": Cut(axis=2, side=-1, offset=0.08),
+    "flange": Cut(axis=2, side=-1, offset=0.02),
 }
 
 
