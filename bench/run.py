@@ -80,6 +80,7 @@ CLOUDS = [
     "box_hole/open",
     "idler_riser/open",
     "flange/open",
+    "wedge/open",
 ]
 COLUMNS = [
     ("d_C", "chamfer", "{:.4f}"),

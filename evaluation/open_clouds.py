@@ -36,7 +36,9 @@ class Cut(NamedTuple):
 # points), a cap of the sphere, the end of the bracket's long leg, the base of the box with a
 # through-hole (the hole then joins the inside to the opening, the hardest case here), and the
 # bases of the real part idler_riser (30 % of its points; its three holes join the inside to the
-# opening) and of the thin flange (43 %: a plate scanned lying on a table, its holes open below).
+# opening) and of the thin flange (43 %: a plate scanned lying on a table, its holes open below),
+# and a corner of the wedge's base, along its length (the slot along its base then joins the
+# inside past the opening).
 CUTS = {
     "cube": Cut(axis=2, side=1, offset=0.45),
     "sphere": Cut(axis=2, side=1, offset=0.35),
@@ -44,6 +46,7 @@ CUTS = {
     "box_hole": Cut(axis=2, side=-1, offset=0.2),
     "idler_riser": Cut(axis=2, side=-1, offset=0.08),
     "flange": Cut(axis=2, side=-1, offset=0.02),
+    "wedge": Cut(axis=0, side=-1, offset=0.203),
 }
 
 

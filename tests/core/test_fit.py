@@ -200,6 +200,28 @@ def test_free_space_of_an_open_box_leaves_its_through_bore_outside_and_takes_the
     assert np.mean(sides != 0) > 0.95 and (outward[sides != 0] > 0).mean() > 0.995
 
 
+def test_free_space_of_an_open_wedge_leaves_the_slot_along_its_base_outside(shared_data):
+    """The wedge with a corner of its base cut off: the slot along its base joins the inside past
+    the opening, and was taken back with it (1,782 voxels), its walls having that region on both
+    sides."""
+    from core.frame import Frame
+    from evaluation.open_clouds import Cut, kept_rows
+    from evaluation.sample_data import load_points_and_labels
+
+    points, labels = load_points_and_labels(shared_data / "wedge")
+    kept = points[kept_rows(labels["points_clean"], Cut(axis=0, side=-1, offset=0.203))]
+    frame = Frame.of(kept)
+    unit = frame.to_unit(kept)
+    space = FreeSpace(unit, normals=sampling.plane_normals(unit))
+    grid = np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    in_slot = grid * [0.02, 0.25, 0.02] + [0.0, 0.0, -0.45]  # the slot: |x| < 0.06, -0.5 < z < -0.4
+    in_solid = grid * [0.05, 0.25, 0.1] + [0.0, 0.0, -0.15]
+    signs = [
+        space.distance_and_sign(torch.as_tensor(frame.to_unit(p), dtype=torch.float32))[1] for p in (in_slot, in_solid)
+    ]
+    assert (signs[0] == 1).all() and (signs[1] == -1).all()
+
+
 @pytest.mark.parametrize("name", ["cube", "l_shape", "cylinder", "sphere"])
 def test_free_space_of_a_closed_cloud_is_the_flood_fills_with_or_without_normals(name):
     points = sample_shape(name, n_points=6000, seed=2).points  # the L's notch sees little sky, and stays outside
