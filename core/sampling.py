@@ -252,20 +252,13 @@ class FreeSpace:
         of an open box has the outside behind them. A region taken back loses what lies across its
         own walls from the inside (``_across_own_walls``).
 
-        Tunnels (``core.visibility.tunnels``) and the voxels next to them are never candidates: a
-        through-bore of a part whose base is open sees little sky, joins the inside under the
-        opening and would be taken back with it (box_hole without its base: 7,616 voxels of its
-        bore, and the normals of its wall flipped). The bore's layer of voxels along its noisy
-        walls sees out along no line, hence the dilation.
+        A through-bore is a region of its own (``_candidate_regions``).
         """
-        escapes = escape_bits(sign == 0)
-        walled_in = ndimage.binary_dilation(tunnels(escapes))
-        candidates = (sign == 1) & (escape_counts(escapes) <= OPEN_ESCAPE_MAX) & ~walled_in
-        regions, count = ndimage.label(candidates, structure=np.ones((3, 3, 3), dtype=bool))
-        if count == 0:
-            return sign
         step = ORIENT_VOXELS * self.voxel
         sides = [self._cells(points + step * normals), self._cells(points - step * normals)]
+        regions, count = _candidate_regions(sign, sides)
+        if count == 0:
+            return sign
         inside_votes = np.zeros(count + 1, dtype=np.int64)
         outside_votes = np.zeros(count + 1, dtype=np.int64)
         for here, there in (sides, sides[::-1]):
@@ -307,6 +300,37 @@ class FreeSpace:
         index = tuple(torch.as_tensor(axis) for axis in self._cells(samples.numpy()))
         sign = self.sign_grid[index].to(samples.dtype)
         return distance, sign
+
+
+def _candidate_regions(
+    sign: np.ndarray, sides: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, int]:
+    """The candidates of ``_close_openings`` (reachable voxels that see the box's boundary in at
+    most ``OPEN_ESCAPE_MAX`` directions) labelled by connected region, 1 to count (0: none), with
+    every bore a region of its own: (labels like ``sign``, count).
+
+    A bore is a region of tunnel voxels (``core.visibility.tunnels``) and their neighbours (the
+    voxels along its noisy walls see out along no line) that at least ``OPEN_MIN_VOTES`` wall
+    points line (a side of theirs lies in it). A through-bore of a part whose base is open sees
+    little sky and joins the inside under the opening; as one region it was taken back with the
+    inside (box_hole without its base: 7,616 voxels of its bore; its wall's normals flipped). On
+    its own it has the inside behind its walls, which casts no vote, and stays outside. Tunnel
+    voxels that no wall lines are a line of sight between two openings of one cavity (a cube
+    scanned with holes in two faces): they stay with the cavity.
+    """
+    escapes = escape_bits(sign == 0)
+    candidates = (sign == 1) & (escape_counts(escapes) <= OPEN_ESCAPE_MAX)
+    cube = np.ones((3, 3, 3), dtype=bool)
+    walled_in, walled_count = ndimage.label(candidates & ndimage.binary_dilation(tunnels(escapes)), structure=cube)
+    lined = np.zeros(walled_count + 1, dtype=np.int64)
+    for side in sides:
+        lined += np.bincount(walled_in[side], minlength=walled_count + 1)
+    lined[0] = 0
+    bores = (lined >= OPEN_MIN_VOTES)[walled_in]
+    regions, count = ndimage.label(candidates & ~bores, structure=cube)
+    bore_regions, bore_count = ndimage.label(bores, structure=cube)
+    regions[bores] = bore_regions[bores] + count
+    return regions, count + bore_count
 
 
 def _across_own_walls(

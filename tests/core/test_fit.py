@@ -200,6 +200,22 @@ def test_free_space_of_an_open_box_leaves_its_through_bore_outside_and_takes_the
     assert np.mean(sides != 0) > 0.95 and (outward[sides != 0] > 0).mean() > 0.995
 
 
+@pytest.mark.parametrize(
+    ("name", "holes"),
+    [("sphere", [[0.0, 0.0, 0.5], [0.5, 0.0, 0.0]]), ("cube", [[0.0, 0.0, 0.5], [0.5, 0.1, 0.0], [-0.2, -0.5, -0.2]])],
+)
+def test_free_space_of_a_scan_with_holes_in_two_faces_takes_back_all_its_inside(name, holes):
+    """The line of sight between two holes is tunnel space, walled in all round, but no bore: the
+    sphere's is lined by walls with the outside behind them, the cube's by no wall at all."""
+    shape = sample_shape(name, n_points=16_384, seed=0)
+    kept = np.all([np.linalg.norm(shape.clean_points - hole, axis=1) > 0.13 for hole in holes], axis=0)
+    points = shape.points[kept]
+    space = FreeSpace(points, normals=sampling.plane_normals(points))
+    share = torch.linspace(0.3, 0.7, 5)[:, None]
+    between = share * torch.tensor(holes[1]) + (1 - share) * torch.tensor(holes[0])  # the line of sight
+    assert (space.distance_and_sign(between)[1] == -1).all()
+
+
 def test_free_space_of_an_open_wedge_leaves_the_slot_along_its_base_outside(shared_data):
     """The wedge with a corner of its base cut off: the slot along its base joins the inside past
     the opening, and was taken back with it (1,782 voxels), its walls having that region on both
