@@ -15,7 +15,7 @@ dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
 samples against the true edges as ECD does the edge points; ``genus`` is the mesh's. A cloud
-``<shape>/open`` is that shape's open variant (evaluation.open_clouds: the points beyond a plane
+``<shape>/open`` is that shape's open variant (evaluation.open_clouds: the points beyond a plane or in a ball
 deleted, scored against the whole true surface).
 ``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D
 (bench/speed.py's pipeline: PCA normals, orientation, depth 9, trimming), scored the same way
@@ -81,6 +81,7 @@ CLOUDS = [
     "idler_riser/open",
     "flange/open",
     "wedge/open",
+    "octagon_pocket/open",
 ]
 COLUMNS = [
     ("d_C", "chamfer", "{:.4f}"),
@@ -201,7 +202,7 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
 def resolve_cloud(cloud: str, data: Path, variants: Path) -> tuple[Path, str]:
     """The shape folder and input file of a cloud name: ``cube`` is ``points.ply`` of ``cube``,
     ``box_hole/points_4096.ply`` that file, ``cube/open`` the open variant written under
-    ``variants`` (evaluation.open_clouds: the points beyond a plane deleted).
+    ``variants`` (evaluation.open_clouds: the points beyond a plane or in a ball deleted).
     """
     from evaluation.open_clouds import OPEN_POINTS, write_open_variant
 

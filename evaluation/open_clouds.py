@@ -1,8 +1,9 @@
 """Open variants of the sample shapes: a cloud that does not enclose its volume everywhere.
 
-A scan of a part standing on a table misses its base; a sampled part can miss a face. Such a
-cloud is made here from a shape folder of ``../shared/data`` by deleting every point whose clean
-position lies beyond a plane, so the result is scored against the same ground truth: the mesh
+A scan of a part standing on a table misses its base; a sampled part can miss a face; a scanner
+cannot see into a pocket's corner. Such a cloud is made here from a shape folder of
+``../shared/data`` by deleting every point whose clean position lies beyond a plane (a ``Cut``)
+or within a ball (a ``Hole``), so the result is scored against the same ground truth: the mesh
 must follow the points and close the gap, and the part of the true surface that has no points
 left counts against it (a fair price: the gap's true surface is the one a user wants).
 
@@ -32,14 +33,22 @@ class Cut(NamedTuple):
     offset: float
 
 
+class Hole(NamedTuple):
+    """Delete the points within ``radius`` of ``centre``: a hole in a scan."""
+
+    centre: tuple[float, float, float]
+    radius: float
+
+
 # One cut per shape, each removing a face or the end of a part: the top of the cube (20 % of its
 # points), a cap of the sphere, the end of the bracket's long leg, the base of the box with a
 # through-hole (the hole then joins the inside to the opening, the hardest case here), and the
 # bases of the real part idler_riser (30 % of its points; its three holes join the inside to the
 # opening) and of the thin flange (43 %: a plate scanned lying on a table, its holes open below),
-# and a corner of the wedge's base, along its length (the slot along its base then joins the
-# inside past the opening).
-CUTS = {
+# a corner of the wedge's base, along its length (the slot along its base then joins the inside
+# past the opening), and a hole in the wall and floor of octagon_pocket's pocket (1 %, but the
+# pocket then joins the inside).
+CUTS: dict[str, Cut | Hole] = {
     "cube": Cut(axis=2, side=1, offset=0.45),
     "sphere": Cut(axis=2, side=1, offset=0.35),
     "l_bracket": Cut(axis=0, side=1, offset=0.45),
@@ -47,15 +56,18 @@ CUTS = {
     "idler_riser": Cut(axis=2, side=-1, offset=0.08),
     "flange": Cut(axis=2, side=-1, offset=0.02),
     "wedge": Cut(axis=0, side=-1, offset=0.203),
+    "octagon_pocket": Hole(centre=(0.3, 0.0, 0.0), radius=0.15),
 }
 
 
-def kept_rows(clean_points: np.ndarray, cut: Cut) -> np.ndarray:
-    """Indices (K,) of the rows of ``clean_points`` (N, 3) on the kept side of ``cut``, in order."""
+def kept_rows(clean_points: np.ndarray, cut: Cut | Hole) -> np.ndarray:
+    """Indices (K,) of the rows of ``clean_points`` (N, 3) that ``cut`` keeps, in order."""
+    if isinstance(cut, Hole):
+        return np.flatnonzero(np.linalg.norm(clean_points - cut.centre, axis=1) > cut.radius)
     return np.flatnonzero(cut.side * clean_points[:, cut.axis] <= cut.offset)
 
 
-def write_open_variant(shape_dir: Path, out_root: Path, cut: Cut | None = None) -> Path:
+def write_open_variant(shape_dir: Path, out_root: Path, cut: Cut | Hole | None = None) -> Path:
     """Write the open variant of ``shape_dir`` (its ``CUTS`` entry unless ``cut`` is given) as a
     shape folder ``out_root/<shape>``: ``points_open.ply``, its labels (every per-point array
     subset to the kept points) and the shape's own ``gt.ply`` and ``edges_gt.npy``. Returns that

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from evaluation.open_clouds import CUTS, OPEN_POINTS, Cut, kept_rows, write_open_variant
+from evaluation.open_clouds import CUTS, OPEN_POINTS, Cut, Hole, kept_rows, write_open_variant
 from evaluation.sample_data import load_points_and_labels
 
 
@@ -10,6 +10,11 @@ def test_kept_rows_are_the_points_on_the_kept_side_in_order():
     clean = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 0.45], [0.0, 0.0, 0.46]])
     assert kept_rows(clean, Cut(axis=2, side=1, offset=0.45)).tolist() == [1, 2]
     assert kept_rows(clean, Cut(axis=2, side=-1, offset=-0.46)).tolist() == [0, 3]
+
+
+def test_kept_rows_of_a_hole_are_the_points_outside_its_ball_in_order():
+    clean = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.5], [0.3, 0.0, 0.5], [0.0, 0.0, 0.0]])
+    assert kept_rows(clean, Hole(centre=(0.0, 0.0, 0.5), radius=0.2)).tolist() == [2, 3]
 
 
 def test_open_cube_loses_its_top_face_and_keeps_labels_aligned(shared_data, tmp_path):
