@@ -41,7 +41,7 @@ ORIENT_VOXELS = 3
 # sampled in at most 9; pockets and bores of closed parts see little too, and the walls' votes
 # tell them apart. A region is taken back as inside when at least OPEN_MIN_VOTES wall points, and
 # OPEN_VOTE_RATIO times as many as say otherwise, have open outside space behind them. A
-# through-bore is never a candidate: it sees out both ways along its axis and nowhere else, which
+# through-bore is a region of its own: it sees out both ways along its axis and nowhere else, which
 # the inside of an open part, seeing out only through its opening, cannot.
 OPEN_ESCAPE_MAX = 11
 OPEN_MIN_VOTES = 32
