@@ -217,15 +217,15 @@ def test_free_space_of_a_scan_with_holes_in_two_faces_takes_back_all_its_inside(
 
 
 def test_free_space_of_an_open_wedge_leaves_the_slot_along_its_base_outside(shared_data):
-    """The wedge with a corner of its base cut off: the slot along its base joins the inside past
-    the opening, and was taken back with it (1,782 voxels), its walls having that region on both
-    sides."""
+    """The wedge with a corner of its base cut off (its open variant): the slot along its base
+    joins the inside past the opening, and was taken back with it (1,782 voxels), its walls having
+    that region on both sides."""
     from core.frame import Frame
-    from evaluation.open_clouds import Cut, kept_rows
+    from evaluation.open_clouds import CUTS, kept_rows
     from evaluation.sample_data import load_points_and_labels
 
     points, labels = load_points_and_labels(shared_data / "wedge")
-    kept = points[kept_rows(labels["points_clean"], Cut(axis=0, side=-1, offset=0.203))]
+    kept = points[kept_rows(labels["points_clean"], CUTS["wedge"])]
     frame = Frame.of(kept)
     unit = frame.to_unit(kept)
     space = FreeSpace(unit, normals=sampling.plane_normals(unit))
