@@ -52,10 +52,7 @@ def _curl(*args: str) -> str:
 @pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
 def test_serve_with_embedded_redis_answers_curl_and_stops_on_ctrl_c(tmp_path, example_cloud):
     (tmp_path / "cube.ply").write_bytes(example_cloud)
-    # The worker at its default niceness (10) gets a tenth of a share of a busy machine's CPU, and
-    # its exit (0.6 s of Python's teardown with torch loaded) took 16 s beside the suite's other
-    # processes; the stop itself is what is timed here, at a fair share.
-    process, url = _serve(tmp_path, workers=1, EDGERECON_WORKER_NICE="0")
+    process, url = _serve(tmp_path, workers=1)
     try:
         family = psutil.Process(process.pid).children(recursive=True)
         names = " ".join(" ".join(child.cmdline()) for child in family)
