@@ -10,7 +10,6 @@ import numpy as np
 import torch
 from scipy import ndimage
 from scipy.spatial import cKDTree
-from skimage.graph import MCP_Geometric
 from torch import Tensor
 
 from core.errors import CancelCheck, check_cancel
@@ -369,6 +368,8 @@ def _geodesic_distance(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     to each voxel of ``mask`` through ``mask``, in steps to any of the 26 neighbours; inf off
     ``mask`` and where no seed is reached. skimage's minimum-cost paths, on the box around ``mask``.
     """
+    from skimage.graph import MCP_Geometric  # here: most fits never need it, and workers import this module
+
     distance = np.full(mask.shape, np.inf)
     starts = seeds & mask
     if not starts.any():
