@@ -33,12 +33,8 @@ EXAMPLE_CLOUD = ROOT / "examples" / "cube.ply"
 TINY = {"iterations": 30, "resolution": 32, "width": 32, "depth": 2, "batch_points": 256}
 # A fit that runs until it is canceled (about 20 ms a step).
 ENDLESS = {"iterations": 100_000, "resolution": 32, "width": 16, "depth": 1, "batch_points": 128}
-# Settings that keep test processes light: eager kernels, no warm-up, one thread, fast heartbeats,
-# and workers at niceness 0: at the default 10 a worker gets a tenth of a share of the machine
-# beside the suite's busy processes, and its exit (0.6 s of Python's teardown with torch loaded)
-# took 16 s, past the tests' bounds on a stop (a Ctrl-C within 15 s, a worker within 30 s).
+# Settings that keep test processes light: eager kernels, no warm-up, one thread, fast heartbeats.
 TEST_ENV = {
-    "EDGERECON_WORKER_NICE": "0",
     "EDGERECON_COMPILE": "0",
     "EDGERECON_WORKER_WARMUP": "0",
     "EDGERECON_WORKER_THREADS": "1",
