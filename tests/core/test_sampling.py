@@ -4,14 +4,13 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from core.sampling import _across_own_walls, _geodesic_distance
+from core.visibility import DIRECTIONS
 
 
 def geodesic_distance_by_dijkstra(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
@@ -21,9 +20,7 @@ def geodesic_distance_by_dijkstra(mask: np.ndarray, seeds: np.ndarray) -> np.nda
     cells = np.argwhere(mask)
     index[tuple(cells.T)] = np.arange(len(cells))
     rows, cols, lengths = [], [], []
-    for step in itertools.product((-1, 0, 1), repeat=3):
-        if step == (0, 0, 0):
-            continue
+    for step in DIRECTIONS:
         to = cells + step
         inside = np.all((to >= 0) & (to < mask.shape), axis=1)
         target = np.full(len(cells), -1)
