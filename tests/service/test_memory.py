@@ -22,7 +22,7 @@ def test_a_full_store_refuses_new_jobs_with_507_and_keeps_serving_the_others(tmp
         service.wait_workers(1)
         done = service.submit(ply_binary(sphere(500)), **TINY)["id"]
         service.wait_status(done, {"succeeded"})
-        worker.kill(), worker.wait(30)  # from now on, jobs wait in the queue with their input
+        worker.terminate(), worker.wait(30)  # from now on, jobs wait in the queue with their input
 
         big = ply_binary(np.random.default_rng(0).normal(size=(300_000, 3)))  # about 4.5 MB in Redis
         accepted, refused = [], None
