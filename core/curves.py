@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
+
+from core.trees import kd_tree
 
 _SMOOTHING_PASSES = 3
 _DENSE = 5  # a curve is matched against points five times denser than its samples
@@ -80,7 +81,7 @@ def distance_to_curves(
     if not curves:
         return np.full(len(points), np.inf)
     dense = np.concatenate([_along(curve.points, spacing / _DENSE)[0] for curve in curves])
-    distance, _ = cKDTree(dense).query(points, distance_upper_bound=within, workers=workers)
+    distance, _ = kd_tree(dense).query(points, distance_upper_bound=within, workers=workers)
     return distance
 
 

@@ -20,7 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from core.trees import kd_tree
 
 # (n, 3) points -> f (n,) and ∇f (n, 3), float64
 Derivatives = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -82,7 +83,7 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     edge &= band_width(profile, 1.5 * SIDE_STEP / _WALK_STEPS) <= BAND_WIDTH
     if not edge.any():
         return planes
-    distance, nearest = cKDTree(start[edge]).query(crossings[candidates])
+    distance, nearest = kd_tree(start[edge]).query(crossings[candidates])
     point_a, normal_a, point_b, normal_b = point_a[edge], normal_a[edge], point_b[edge], normal_b[edge]
     # A candidate takes the nearest walk's planes if both pass near it: near a corner the nearest
     # walk may have crossed onto another edge's faces.
@@ -101,7 +102,7 @@ def _turning(crossings: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np
     """The crossings whose normal turns towards a neighbour's by more than ``_CANDIDATE_TURNING``,
     and for each the unit direction (in its tangent plane) in which the normal turns fastest."""
     k = min(_NEIGHBOURS + 1, len(crossings))
-    _, neighbours = cKDTree(crossings).query(crossings, k)
+    _, neighbours = kd_tree(crossings).query(crossings, k)
     neighbours = neighbours[:, 1:]
     cosines = np.einsum("ij,ikj->ik", normals, normals[neighbours])
     candidates = np.flatnonzero(cosines.min(axis=1) < np.cos(np.radians(_CANDIDATE_TURNING)))

@@ -11,6 +11,10 @@ denormal arithmetic.
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # from glibc's malloc.h
 
@@ -50,6 +54,32 @@ def flush_denormals() -> None:
     import torch
 
     torch.set_flush_denormal(True)
+
+
+def flushing_denormals() -> bool:
+    """Whether this thread flushes denormal floats now (a denormal times 1 comes out 0)."""
+    return bool((np.array([5e-324]) * 1.0)[0] == 0.0)
+
+
+@contextmanager
+def denormals_kept() -> Iterator[None]:
+    """Denormal arithmetic in this thread (and threads started in the block) for the block, then the
+    flag as it was.
+
+    For C code that was not written for flushed denormals: scipy's k-d tree (balanced, compact
+    nodes: its defaults) recursed until the process crashed (SIGSEGV) while building a tree over
+    points of which many have a coordinate exactly 0, such as an exactly sampled part with a face
+    on a plane of the normalised frame, when the flag was set as ``configure`` sets it."""
+    if not flushing_denormals():
+        yield
+        return
+    import torch
+
+    torch.set_flush_denormal(False)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(True)
 
 
 def keep_freed_memory() -> None:
