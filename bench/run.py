@@ -190,8 +190,8 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
         configure_core()
         points = read_points(shape_dir / points_file)
         result = reconstruct(points, params_for(config, overrides))
-        # Score with denormal floats kept: with them flushed (configure), scipy's k-d tree of
-        # plate_holes' ground-truth triangle centroids crashed the process (SIGSEGV).
+        # Score with denormal floats kept, as exact as the scores' arithmetic can be (configure
+        # flushed them for the fit; k-d trees build safely either way, core.trees).
         torch.set_flush_denormal(False)
         scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
         true_edges = np.load(shape_dir / "edges_gt.npy")

@@ -22,7 +22,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from core.trees import kd_tree
 
 # Number of points sampled on each surface for the Chamfer and Hausdorff distances.
 SURFACE_SAMPLES = 100_000
@@ -154,7 +155,7 @@ class TriangleTree:
             corners = split_triangles(corners, split_fraction * diagonal)
             corners = corners[_z_order(corners.mean(axis=1))]
         self.a, self.b, self.c = (np.ascontiguousarray(corners[:, i]) for i in range(3))
-        self.centroid_tree = cKDTree(corners.mean(axis=1)) if len(corners) else None
+        self.centroid_tree = kd_tree(corners.mean(axis=1)) if len(corners) else None
         # Levels are padded to an even length with empty boxes (low inf, high -inf), which are
         # infinitely far from every point.
         self.lows, self.highs = [corners.min(axis=1)], [corners.max(axis=1)]
@@ -269,8 +270,8 @@ def surface_distances(
     gt_samples = sample_surface(gt_mesh.vertices, gt_mesh.faces, count, seed + 1)
     if len(samples) == 0 or len(gt_samples) == 0:
         return dict.fromkeys(["chamfer", "hausdorff", "chamfer_exact", "hausdorff_exact"], np.inf)
-    to_gt, _ = cKDTree(gt_samples).query(samples)
-    from_gt, _ = cKDTree(samples).query(gt_samples)
+    to_gt, _ = kd_tree(gt_samples).query(samples)
+    from_gt, _ = kd_tree(samples).query(gt_samples)
     scores = {"chamfer": _chamfer(to_gt, from_gt), "hausdorff": _hausdorff(to_gt, from_gt)}
     if exact:
         to_gt = distance_to_mesh(samples, gt_mesh.vertices, gt_mesh.faces)
@@ -387,8 +388,8 @@ def edge_chamfer(edge_points: np.ndarray, gt_edge_points: np.ndarray) -> float:
         return np.nan
     if len(edge_points) == 0 or len(gt_edge_points) == 0:
         return np.inf
-    to_gt, _ = cKDTree(gt_edge_points).query(edge_points)
-    from_gt, _ = cKDTree(edge_points).query(gt_edge_points)
+    to_gt, _ = kd_tree(gt_edge_points).query(edge_points)
+    from_gt, _ = kd_tree(edge_points).query(gt_edge_points)
     return _chamfer(to_gt, from_gt)
 
 
