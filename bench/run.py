@@ -176,8 +176,6 @@ def params_for(config: str, overrides: dict):
 
 def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
     """Fit one cloud with one configuration in this process; its scores, times and peak memory."""
-    import torch
-
     from core.ply import read_points
     from core.reconstruct import reconstruct
     from evaluation.metrics import edge_chamfer
@@ -190,9 +188,6 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
         configure_core()
         points = read_points(shape_dir / points_file)
         result = reconstruct(points, params_for(config, overrides))
-        # Score with denormal floats kept, as exact as the scores' arithmetic can be (configure
-        # flushed them for the fit; k-d trees build safely either way, core.trees).
-        torch.set_flush_denormal(False)
         scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
         true_edges = np.load(shape_dir / "edges_gt.npy")
     scores["curve_ecd"] = float("nan")
