@@ -11,7 +11,7 @@ from torch import Tensor
 
 from core.errors import CancelCheck, check_cancel
 from core.losses import eikonal_loss, free_space_loss, laplacian_loss, normal_loss, vanish_loss
-from core.network import ImplicitNetwork
+from core.network import ImplicitNetwork, eager_kernels, finish_warming_kernels, warm_kernels_in_background
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
 from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_normals, subsample_rows
@@ -38,6 +38,12 @@ HALF_BATCH_SHARE = 0.75
 # the half batch (exact d_C 0.0016 to 0.0023, seed 1: 0.0025 to 0.0052), its 16,384 points did not.
 HALF_BATCH_MIN_POINTS = 8192
 
+# The first steps of every fit run the eager kernels while the compiled ones are made in the
+# background (``warm_kernels_in_background``): 5-9 s to load from the disk cache, 30 s or more
+# after an install, before which the first step waited. Every fit switches at the same step,
+# whether or not its process had compiled before, so that a seed gives the same fit.
+EAGER_STEPS = 100
+
 # The points whose median of f sets the fitted level (``centre_level``), drawn from the cloud: the
 # median of this many is the whole cloud's to within a hundredth of the noise's width.
 LEVEL_POINTS = 16_384
@@ -63,7 +69,8 @@ def fit(
     of the steps, for a cloud of at least ``HALF_BATCH_MIN_POINTS``) and their eikonal samples
     (``draw_batch``; a ``residual_share`` of the points in proportion to their |f| when last
     drawn), computes ``step_loss`` and takes one Adam step, with the learning rate decaying
-    geometrically. Last, f is shifted so that its median at the points is 0 (``centre_level``).
+    geometrically. The first ``EAGER_STEPS`` steps run the eager kernels while the compiled ones are
+    made in a background thread. Last, f is shifted so that its median at the points is 0 (``centre_level``).
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
     neighbour queries and the free-space map take seconds); when it returns True, ``Cancelled``
     is raised.
@@ -71,6 +78,8 @@ def fit(
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
         model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
+    matmul_dtype = matmul_dtype_for(params.precision)
+    warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
     points = points[fit_rows(len(points), params.seed)]
     cloud = torch.as_tensor(points, dtype=torch.float32)
     # One tree and one pass of neighbour queries serve the local scales and the free-space map.
@@ -91,7 +100,6 @@ def fit(
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
-    matmul_dtype = matmul_dtype_for(params.precision)
     batch_size = min(params.batch_points, len(cloud))
     early_size = max(batch_size // 2, 1) if len(cloud) >= HALF_BATCH_MIN_POINTS else batch_size
 
@@ -104,7 +112,8 @@ def fit(
     # Each point's |f| when it was last drawn; 1 (far above any fitted residual) until then, so the
     # first weighted draws go to the points not yet seen.
     residuals = torch.ones(len(cloud))
-    for iteration in range(1, params.iterations + 1):
+
+    def take_step(iteration: int) -> None:
         check_cancel(should_cancel)
         size = batch_size if iteration > HALF_BATCH_SHARE * params.iterations else early_size
         batch, samples, rows = draw_batch(cloud, scales, size, generator, residuals, params.residual_share)
@@ -133,6 +142,13 @@ def fit(
                     edge_share=edge_share,
                 )
             )
+
+    with eager_kernels():
+        for iteration in range(1, min(EAGER_STEPS, params.iterations) + 1):
+            take_step(iteration)
+    finish_warming_kernels()
+    for iteration in range(EAGER_STEPS + 1, params.iterations + 1):
+        take_step(iteration)
     centre_level(model, cloud[torch.as_tensor(subsample_rows(len(cloud), LEVEL_POINTS, params.seed))])
     return model
 

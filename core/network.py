@@ -19,9 +19,13 @@ nested autograd: the slow, obviously right reference that the tests compare agai
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
-from collections.abc import Callable
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any, ClassVar
 
 import torch
@@ -242,6 +246,9 @@ class _Kernels:
     ``core.runtime.configure`` sets ``compiled`` for the process. A kernel whose compilation fails
     in the compiler backend (no C++ compiler, an unsupported platform) runs eagerly from then on,
     and the first such failure is logged; any other error is a bug in the kernel and propagates.
+    A thread inside ``eager_kernels`` gets the eager kernels; any other thread waits for a
+    background warm-up (``warm_kernels_in_background``) before it calls a compiled kernel, so that
+    two threads never compile at once.
     """
 
     _eager: ClassVar[dict[str, Callable[..., Any]]] = {
@@ -256,11 +263,15 @@ class _Kernels:
         self.compiled = compiled
         self.fell_back: set[str] = set()  # the kernels whose compilation failed
         self._functions: dict[str, Callable[..., Any]] = {}
+        self.thread_state = threading.local()  # .eager: this thread runs the eager kernels
+        self.warm_up: _WarmUp | None = None
 
     def __getattr__(self, name: str) -> Callable[..., Any]:
         eager = self._eager[name]
-        if not self.compiled or name in self.fell_back:
+        if not self.compiled or name in self.fell_back or getattr(self.thread_state, "eager", False):
             return eager
+        if self.warm_up is not None and self.warm_up is not threading.current_thread():
+            self.warm_up.finish()
         if name not in self._functions:
             self._functions[name] = torch.compile(eager, dynamic=True)
         compiled = self._functions[name]
@@ -278,9 +289,81 @@ class _Kernels:
         return call
 
 
+class _WarmUp(threading.Thread):
+    """A thread that calls every compiled kernel a fit and its extraction will call, on a few rows
+    of a copy of the fit's network, so that the kernels are compiled (or loaded from the disk
+    cache) while the fit's first steps run eagerly. An error in it is raised by ``finish``."""
+
+    def __init__(self, network: ImplicitNetwork, matmul_dtype: torch.dtype | None, laplacian: bool):
+        super().__init__(name="kernel-warm-up", daemon=True)
+        self.network, self.matmul_dtype, self.laplacian = network, matmul_dtype, laplacian
+        self.error: BaseException | None = None
+        self.switch_interval = sys.getswitchinterval()
+
+    def run(self) -> None:
+        try:
+            x = torch.rand(12, 3, generator=torch.Generator().manual_seed(0)) - 0.5
+            f, grad, lap = self.network.derivatives(x, 4 if self.laplacian else 0, self.matmul_dtype)
+            (f.sum() + grad.sum() + (lap.sum() if lap is not None else 0)).backward()
+            with torch.no_grad():  # the extraction's calls
+                self.network(x)
+                self.network.derivatives(x)
+                self.network.derivatives(x, laplacian_rows=0)
+        except BaseException as error:  # handed to the thread that waits
+            self.error = error
+        finally:
+            sys.setswitchinterval(self.switch_interval)
+
+    def finish(self) -> None:
+        """Wait for the warm-up, then raise its error if it had one."""
+        self.join()
+        if _kernels.warm_up is self:
+            _kernels.warm_up = None
+        if self.error is not None:
+            raise self.error
+
+
 _kernels = _Kernels()
+
+# The interpreter's switch interval while a warm-up runs (``warm_kernels_in_background``).
+WARM_UP_SWITCH_INTERVAL = 1e-5
 
 
 def use_compiled_kernels(enabled: bool) -> None:
     """Compile the element-wise kernels (True, the default) or run them eagerly, for the whole process."""
     _kernels.compiled = enabled
+
+
+def warm_kernels_in_background(network: ImplicitNetwork, matmul_dtype: torch.dtype | None, laplacian: bool) -> None:
+    """Compile the kernels that a fit of ``network`` (on a copy of it) with these
+    options will call, in a background thread; a no-op when compiling is off or a warm-up runs.
+
+    Compiled kernels take 5-9 s to load from the disk cache and 30 s or more to compile after an
+    install; the fit's first steps run the eager kernels meanwhile (``eager_kernels``).
+    """
+    if not _kernels.compiled or _kernels.warm_up is not None:
+        return
+    _kernels.warm_up = _WarmUp(copy.deepcopy(network), matmul_dtype, laplacian)
+    # Both threads want the interpreter's lock: the compiler for its tracing, the fit for each
+    # operation's dispatch. Handed over every 10 µs instead of 5 ms, the first step came after
+    # 3.2-4.0 s instead of 4.9 s (the set-up waited for the lock too).
+    sys.setswitchinterval(WARM_UP_SWITCH_INTERVAL)
+    _kernels.warm_up.start()
+
+
+def finish_warming_kernels() -> None:
+    """Wait for a background warm-up (``warm_kernels_in_background``), if one runs."""
+    if _kernels.warm_up is not None:
+        _kernels.warm_up.finish()
+
+
+@contextmanager
+def eager_kernels() -> Iterator[None]:
+    """Run the eager kernels in this thread inside the block, whether or not compiling is on."""
+    state = _kernels.thread_state
+    before = getattr(state, "eager", False)
+    state.eager = True
+    try:
+        yield
+    finally:
+        state.eager = before

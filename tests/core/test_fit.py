@@ -7,12 +7,14 @@ bounds measured on it with a margin. The fit with the shipped defaults is in tes
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
 
 from core import fit as fit_module
-from core import sampling
+from core import network, sampling
 from core.errors import Cancelled
 from core.fit import centre_level, fit, fit_rows
 from core.losses import free_space_loss, laplacian_loss, normal_loss
@@ -305,14 +307,66 @@ def test_residual_draws_are_in_proportion_to_the_residuals():
 # --- the loop -------------------------------------------------------------------------------------
 
 
-def test_fit_is_deterministic_for_a_seed():
+def test_fit_is_deterministic_for_a_seed_whether_or_not_its_process_compiled_the_kernels_before(monkeypatch):
+    monkeypatch.setattr(network, "_kernels", network._Kernels())  # the first fit warms these up
+    monkeypatch.setattr(fit_module, "EAGER_STEPS", 2)  # steps 3 to 5 run the compiled kernels
     points = sample_shape("cube", n_points=1000, seed=0).points
     params = FitParams(iterations=5, seed=3, precision="float32", **SMALL)
     first, again = fit(points, params), fit(points, params)
+    assert network._kernels._functions and not network._kernels.fell_back
     other = fit(points, params.model_copy(update={"seed": 4}))
     for a, b in zip(first.parameters(), again.parameters()):
         assert torch.equal(a, b)
     assert not all(torch.equal(a, c) for a, c in zip(first.parameters(), other.parameters()))
+
+
+def _recording_compile(calls: list[tuple[str, str]]):
+    """A stand-in for torch.compile whose compiled functions run the eager ones and record
+    (thread, kernel) for each call."""
+
+    def compile(function, **options):
+        def run(*args):
+            calls.append((threading.current_thread().name, function.__name__))
+            return function(*args)
+
+        return run
+
+    return compile
+
+
+def test_the_first_steps_run_eagerly_while_the_kernels_compile_in_the_background_then_the_compiled_ones(
+    monkeypatch,
+):
+    calls: list[tuple[str, str]] = []
+    monkeypatch.setattr(torch, "compile", _recording_compile(calls))
+    monkeypatch.setattr(network, "_kernels", network._Kernels())
+    monkeypatch.setattr(fit_module, "EAGER_STEPS", 3)
+    release = threading.Event()
+    warm_up = network._WarmUp.run
+
+    def held_warm_up(self):  # a compiler that takes its time: it finishes after the third step
+        assert release.wait(60)
+        warm_up(self)
+
+    monkeypatch.setattr(network._WarmUp, "run", held_warm_up)
+    calls_by_step = []
+
+    def progress(update: Progress) -> None:
+        calls_by_step.append(len(calls))
+        if update.iteration == 3:
+            release.set()
+
+    fit(sample_shape("cube", n_points=1000, seed=0).points, FitParams(iterations=6, **SMALL), progress=progress)
+    assert calls_by_step[:3] == [0, 0, 0]  # three steps taken while the compiler was held, none compiled
+    threads = [thread for thread, _ in calls]
+    main = threading.current_thread().name
+    warmed = threads[: threads.index(main)]  # then the warm-up ran to its end before the fit's next step
+    assert warmed and set(warmed) == {"kernel-warm-up"} and "kernel-warm-up" not in threads[len(warmed) :]
+    every_kernel = {function.__name__ for function in network._Kernels._eager.values()}
+    assert {kernel for _, kernel in calls[: len(warmed)]} == every_kernel
+    assert calls_by_step[3] > len(warmed)  # step 4 ran the compiled kernels
+    assert {kernel for thread, kernel in calls if thread == main} == every_kernel  # the steps, then the level
+    assert network._kernels.warm_up is None
 
 
 def test_the_fits_fused_adam_takes_the_steps_of_the_plain_loop(monkeypatch):
