@@ -40,9 +40,12 @@ HALF_BATCH_MIN_POINTS = 8192
 
 # The first steps of every fit run the eager kernels while the compiled ones are made in the
 # background (``warm_kernels_in_background``): 5-9 s to load from the disk cache, 30 s or more
-# after an install, before which the first step waited. Every fit switches at the same step,
+# after an install, before which the first step waited. The two threads share the interpreter's
+# lock, so each runs at half its pace or less: with 100 eager steps a warm-cache fit reached step
+# 200 5-7 s later than without the thread, with 20 about 1.4 s later (docs/benchmarks.md); the
+# fit waits at this step for what is left of the compile. Every fit switches at the same step,
 # whether or not its process had compiled before, so that a seed gives the same fit.
-EAGER_STEPS = 100
+EAGER_STEPS = 20
 
 # The points whose median of f sets the fitted level (``centre_level``), drawn from the cloud: the
 # median of this many is the whole cloud's to within a hundredth of the noise's width.
