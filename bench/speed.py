@@ -13,6 +13,8 @@ Parts (``--only``, comma-separated):
   getrusage(RUSAGE_CHILDREN)), peak resident memory of its process tree (psutil, polled every
   0.1 s), and the time to its first fitting step (from its progress bar: import, reading,
   set-up and any kernel compilation).
+- ``cold``: ``edgerecon fit`` on the cube as the first fit after an install: torch's compile cache
+  (``TORCHINDUCTOR_CACHE_DIR``) an empty temporary folder, so every kernel is compiled anew.
 - ``serve``: the same clouds through a fresh ``edgerecon serve`` (free port, its own --data-dir in a
   temporary folder, its defaults: one worker on every core), started and warmed up before the
   clock runs; one job at a time, timed from the POST to ``succeeded`` (polled every 0.25 s). CPU and
@@ -60,7 +62,7 @@ sys.path.insert(0, str(ROOT))
 
 DATA = ROOT.parent / "shared" / "data"
 CLOUDS = ("cube", "box_hole")
-PARTS = ("fit", "serve", "poisson", "large")
+PARTS = ("fit", "cold", "serve", "poisson", "large")
 LARGE = {"100k": 100_000, "1M": 1_000_000}
 HUGE = {"5M": 5_000_000}
 NOISE = 0.005
@@ -97,6 +99,10 @@ def main() -> int:
         if "fit" in parts:
             for shape in CLOUDS:
                 rows.append(run_fit("edgerecon fit", shape, args.data / shape, "points.ply", work, options))
+        if "cold" in parts:
+            empty_cache = {"TORCHINDUCTOR_CACHE_DIR": str(work / "empty-compile-cache")}
+            label = "edgerecon fit, empty compile cache"
+            rows.append(run_fit(label, "cube", args.data / "cube", "points.ply", work, options, empty_cache))
         if "serve" in parts:
             rows += run_serve(args.data, work, args.iterations, notes)
         if "poisson" in parts:
@@ -186,13 +192,16 @@ def children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def timed_process(command: list[str], on_line: Callable[[str, float], None] | None = None) -> dict[str, Any]:
+def timed_process(
+    command: list[str], on_line: Callable[[str, float], None] | None = None, env: dict[str, str] | None = None
+) -> dict[str, Any]:
     """Run ``command`` to its end: wall seconds, CPU seconds, peak tree RSS (MB), its stdout and the
     tail of its stderr. ``on_line`` gets every stderr line (tqdm's carriage returns split too) with
-    the seconds since the start."""
+    the seconds since the start; ``env`` is added to ``clean_env()``."""
     cpu_before = children_cpu()
     started = time.perf_counter()
-    child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=clean_env())
+    environment = clean_env() | (env or {})
+    child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=environment)
     monitor = TreeMonitor(child.pid)
     monitor.start()
     stdout: list[bytes] = []
@@ -234,7 +243,15 @@ def clean_env() -> dict[str, str]:
 # --- edgerecon fit ----------------------------------------------------------------------------------
 
 
-def run_fit(label: str, cloud: str, folder: Path, points_file: str, work: Path, options: list[str]) -> dict[str, Any]:
+def run_fit(
+    label: str,
+    cloud: str,
+    folder: Path,
+    points_file: str,
+    work: Path,
+    options: list[str],
+    env: dict[str, str] | None = None,
+) -> dict[str, Any]:
     out = work / f"fit-{cloud.replace(' ', '-')}"
     first_step: list[float] = []
 
@@ -245,7 +262,7 @@ def run_fit(label: str, cloud: str, folder: Path, points_file: str, work: Path, 
 
     print(f"{label} on {cloud}...", file=sys.stderr, flush=True)
     command = [*EDGERECON, "fit", str(folder / points_file), "--out", str(out), *options]
-    done = timed_process(command, watch)
+    done = timed_process(command, watch, env)
     row = {"run": label, "cloud": cloud, "points": count_points(folder / points_file), **done}
     row["first_step"] = first_step[0] if first_step else None
     if done["returncode"] != 0:
