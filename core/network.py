@@ -271,7 +271,7 @@ class _Kernels:
         if not self.compiled or name in self.fell_back or getattr(self.thread_state, "eager", False):
             return eager
         if self.warm_up is not None and self.warm_up is not threading.current_thread():
-            self.warm_up.finish()
+            self.finish_warm_up()
         if name not in self._functions:
             self._functions[name] = torch.compile(eager, dynamic=True)
         compiled = self._functions[name]
@@ -288,11 +288,21 @@ class _Kernels:
 
         return call
 
+    def finish_warm_up(self) -> None:
+        """Wait for the background warm-up, if one runs, then raise its error if it had one."""
+        warm_up, self.warm_up = self.warm_up, None
+        if warm_up is None:
+            return
+        warm_up.join()
+        if warm_up.error is not None:
+            raise warm_up.error
+
 
 class _WarmUp(threading.Thread):
     """A thread that calls every compiled kernel a fit and its extraction will call, on a few rows
     of a copy of the fit's network, so that the kernels are compiled (or loaded from the disk
-    cache) while the fit's first steps run eagerly. An error in it is raised by ``finish``."""
+    cache) while the fit's first steps run eagerly. An error in it is raised by
+    ``_Kernels.finish_warm_up``."""
 
     def __init__(self, network: ImplicitNetwork, matmul_dtype: torch.dtype | None, laplacian: bool):
         super().__init__(name="kernel-warm-up", daemon=True)
@@ -313,14 +323,6 @@ class _WarmUp(threading.Thread):
             self.error = error
         finally:
             sys.setswitchinterval(self.switch_interval)
-
-    def finish(self) -> None:
-        """Wait for the warm-up, then raise its error if it had one."""
-        self.join()
-        if _kernels.warm_up is self:
-            _kernels.warm_up = None
-        if self.error is not None:
-            raise self.error
 
 
 _kernels = _Kernels()
@@ -353,8 +355,7 @@ def warm_kernels_in_background(network: ImplicitNetwork, matmul_dtype: torch.dty
 
 def finish_warming_kernels() -> None:
     """Wait for a background warm-up (``warm_kernels_in_background``), if one runs."""
-    if _kernels.warm_up is not None:
-        _kernels.warm_up.finish()
+    _kernels.finish_warm_up()
 
 
 @contextmanager
