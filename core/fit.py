@@ -81,8 +81,6 @@ def fit(
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
         model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
-    matmul_dtype = matmul_dtype_for(params.precision)
-    warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
     points = points[fit_rows(len(points), params.seed)]
     cloud = torch.as_tensor(points, dtype=torch.float32)
     # One tree and one pass of neighbour queries serve the local scales and the free-space map.
@@ -103,6 +101,7 @@ def fit(
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
+    matmul_dtype = matmul_dtype_for(params.precision)
     batch_size = min(params.batch_points, len(cloud))
     early_size = max(batch_size // 2, 1) if len(cloud) >= HALF_BATCH_MIN_POINTS else batch_size
 
@@ -146,10 +145,13 @@ def fit(
                 )
             )
 
-    with eager_kernels():
-        for iteration in range(1, min(EAGER_STEPS, params.iterations) + 1):
-            take_step(iteration)
-    finish_warming_kernels()
+    warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
+    try:
+        with eager_kernels():
+            for iteration in range(1, min(EAGER_STEPS, params.iterations) + 1):
+                take_step(iteration)
+    finally:  # a cancelled fit leaves no compiler thread behind to race the next import or the exit
+        finish_warming_kernels()
     for iteration in range(EAGER_STEPS + 1, params.iterations + 1):
         take_step(iteration)
     centre_level(model, cloud[torch.as_tensor(subsample_rows(len(cloud), LEVEL_POINTS, params.seed))])

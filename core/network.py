@@ -345,6 +345,11 @@ def warm_kernels_in_background(network: ImplicitNetwork, matmul_dtype: torch.dty
     """
     if not _kernels.compiled or _kernels.warm_up is not None:
         return
+    # Imported here, before the thread starts: the fit's optimizer imports it at its first step
+    # anyway, and the two threads importing the compiler's modules at once can each hold one the
+    # other needs (an ImportError of a partially initialised torch._dynamo module, seen in a test).
+    import torch._dynamo  # noqa: F401
+
     _kernels.warm_up = _WarmUp(copy.deepcopy(network), matmul_dtype, laplacian)
     # Both threads want the interpreter's lock: the compiler for its tracing, the fit for each
     # operation's dispatch. Handed over every 10 µs instead of 5 ms, the first step came after

@@ -8,6 +8,7 @@ bounds measured on it with a margin. The fit with the shipped defaults is in tes
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -457,6 +458,30 @@ def test_cancel_stops_the_fit():
     with pytest.raises(Cancelled):
         fit(points, FitParams(iterations=100, **SMALL), should_cancel=should_cancel)
     assert len(calls) == 4
+
+
+def test_a_fit_cancelled_before_its_kernels_are_compiled_waits_for_the_compiler_thread(monkeypatch):
+    # Left running, the thread aborted the interpreter at exit ("terminate called without an active
+    # exception") and raced the next test's import of torch._dynamo (ImportError).
+    monkeypatch.setattr(network, "_kernels", network._Kernels())
+    warm_up = network._WarmUp.run
+    threads = []
+
+    def slow_warm_up(self):
+        threads.append(self)
+        time.sleep(0.5)
+        warm_up(self)
+
+    monkeypatch.setattr(network._WarmUp, "run", slow_warm_up)
+    steps: list[Progress] = []
+    with pytest.raises(Cancelled):
+        fit(
+            sample_shape("cube", n_points=1000, seed=0).points,
+            FitParams(iterations=100, **SMALL),
+            progress=steps.append,
+            should_cancel=lambda: len(steps) >= 2,  # at the third step, while the compiler still sleeps
+        )
+    assert len(steps) == 2 and threads and not threads[0].is_alive() and network._kernels.warm_up is None
 
 
 # --- quality ----------------------------------------------------------------------------------------
