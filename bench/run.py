@@ -4,6 +4,7 @@ and worker throughput. Prints markdown tables and writes them to bench/results/l
 
     .venv/bin/python bench/run.py                                  # everything (about an hour)
     .venv/bin/python bench/run.py --only quality --configs default --clouds cube
+    .venv/bin/python bench/run.py --only quality --configs default --clouds cube,flange --seeds 0,1 --jobs 2
     .venv/bin/python bench/run.py --only steps                     # one training step, side by side
     .venv/bin/python bench/run.py --only throughput                # 1 worker x 2 threads vs 2 x 1
 
@@ -22,6 +23,11 @@ deleted, scored against the whole true surface).
 with the cloud's normals; it has no edges (their scores are blank), its fit s is the normals'
 estimation and orientation and its extract s the Poisson solve. It needs the ``bench`` extra, and
 is in the default list only when Open3D is installed.
+
+``--seeds 0,1,2`` fits every pair once per seed and adds the seeds' mean and range: a single fit's
+d_H moves by about 15 % between seeds, so a change is judged over seeds. ``--jobs 2`` runs two fits
+at once with the cores split between them (quicker for research runs; times are then a shared
+machine's).
 
 Steps: one training step (``core.fit.step_loss``, backward, Adam) with and without the
 Laplacian term, alternated in one run so that the machine's load hits both; medians, the
@@ -44,6 +50,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -111,23 +118,37 @@ def main() -> int:
     )
     parser.add_argument("--clouds", default=",".join(CLOUDS), help="shape or shape/points file, comma-separated")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a FitParams field")
+    parser.add_argument(
+        "--seeds", help="comma-separated: each pair fitted once per seed, with the seeds' mean and range"
+    )
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="quality fits at once, the cores split among them (default 1)"
+    )
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "latest.md")
     parser.add_argument("--one", nargs=2, metavar=("CONFIG", "CLOUD"), help=argparse.SUPPRESS)
+    parser.add_argument("--threads", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     overrides = dict(item.split("=", 1) for item in args.set)
     if args.one:
-        print(json.dumps(run_one(args.one[0], args.one[1], args.data, overrides)))
+        print(json.dumps(run_one(args.one[0], args.one[1], args.data, overrides, args.threads)))
         return 0
+    seeds = [int(seed) for seed in args.seeds.split(",")] if args.seeds else None
+    if seeds is not None and "seed" in overrides:
+        parser.error("--seeds and --set seed= name the seed twice; give one of them")
+    if args.jobs < 1:
+        parser.error("--jobs must be at least 1")
     if not args.data.is_dir():
         print(f"bench: {args.data} is missing (the sample shapes of ../shared/data)", file=sys.stderr)
         return 2
 
     parts = args.only or ["quality", "steps", "throughput"]
     command = "python bench/run.py " + " ".join(sys.argv[1:])
-    sections = [f"Made by `{command.strip()}` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {machine()}."]
+    shared = f"; {args.jobs} fits at once, {fit_threads(args.jobs)} threads each" if args.jobs > 1 else ""
+    sections = [f"Made by `{command.strip()}` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {machine()}{shared}."]
     if "quality" in parts:
-        sections.append(quality(args.configs.split(","), args.clouds.split(","), args.data, overrides))
+        configs, clouds = args.configs.split(","), args.clouds.split(",")
+        sections.append(quality(configs, clouds, args.data, overrides, seeds, args.jobs))
     if "steps" in parts:
         sections.append(steps(overrides))
     if "throughput" in parts:
@@ -174,8 +195,9 @@ def params_for(config: str, overrides: dict):
     return FitParams(**{**CONFIGS[config], **overrides})
 
 
-def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
-    """Fit one cloud with one configuration in this process; its scores, times and peak memory."""
+def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int | None = None) -> dict:
+    """Fit one cloud with one configuration in this process (on ``threads`` torch threads, None:
+    torch's default); its scores, times and peak memory."""
     from core.ply import read_points
     from core.reconstruct import reconstruct
     from evaluation.metrics import edge_chamfer
@@ -185,7 +207,7 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict) -> dict:
         shape_dir, points_file = resolve_cloud(cloud, data, Path(variants))
         if config in BASELINES:
             return run_baseline(shape_dir, points_file)
-        configure_core()
+        configure_core(threads)
         points = read_points(shape_dir / points_file)
         result = reconstruct(points, params_for(config, overrides))
         scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
@@ -230,24 +252,24 @@ def run_baseline(shape_dir: Path, points_file: str) -> dict:
     return {**scores, **timings, "peak_mb": peak_kb / 1024, "edge_points": 0}
 
 
-def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) -> str:
-    rows = {}
-    for config in configs:
-        for cloud in clouds:
-            print(f"fitting {cloud} with {config}...", file=sys.stderr, flush=True)
-            command = [sys.executable, __file__, "--one", config, cloud, "--data", str(data)]
-            command += [f"--set={name}={value}" for name, value in overrides.items()]
-            done = subprocess.run(command, capture_output=True, text=True, check=False)
-            if done.returncode != 0:
-                print(done.stderr[-2000:], file=sys.stderr)
-                rows[config, cloud] = None
-                continue
-            rows[config, cloud] = json.loads(done.stdout.strip().splitlines()[-1])
-            print(
-                "  " + ", ".join(f"{name} {fmt.format(rows[config, cloud][key])}" for name, key, fmt in COLUMNS[:10]),
-                file=sys.stderr,
-            )
+def quality(
+    configs: list[str],
+    clouds: list[str],
+    data: Path,
+    overrides: dict,
+    seeds: list[int] | None = None,
+    jobs: int = 1,
+) -> str:
+    """The per-shape table and the averages; with ``seeds``, a row per seed and a table of the seeds'
+    mean and range, since one fit's d_H moves by about 15 % between seeds (docs/benchmarks.md).
+    ``jobs`` fits run at once, each on its share of the cores (the times are then those of a
+    shared machine)."""
+    runs = [(config, cloud, seed) for config in configs for cloud in clouds for seed in seeds or [None]]
+    threads = fit_threads(jobs) if jobs > 1 else None
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        results = dict(zip(runs, pool.map(lambda run: fit_in_subprocess(*run, data, overrides, threads), runs)))
     params = params_for("default", overrides)
+    rows = [((cloud, config, *seed_cell(seed)), results[config, cloud, seed]) for cloud, config, seed in by_cloud(runs)]
     lines = [
         "## Quality and time per shape",
         "",
@@ -256,17 +278,99 @@ def quality(configs: list[str], clouds: list[str], data: Path, overrides: dict) 
         + "; ".join(f"`{name}` = {BASELINES.get(name) or CONFIGS[name] or 'the defaults'}" for name in configs)
         + ".",
         "",
-        table(["cloud", "config"], [((cloud, config), rows[config, cloud]) for cloud in clouds for config in configs]),
+        table(["cloud", "config", *seed_cell("seed" if seeds else None)], rows),
         "",
+    ]
+    if seeds:
+        pairs = [(cloud, config) for config in configs for cloud in clouds]
+        per_pair = {pair: [results[pair[1], pair[0], seed] for seed in seeds] for pair in pairs}
+        lines += [
+            f"## Over seeds {', '.join(map(str, seeds))}",
+            "",
+            "The mean of each measure over the seeds:",
+            "",
+            table(["cloud", "config"], [(pair, average(per_pair[pair])) for pair in pairs]),
+            "",
+            "The range (lowest to highest) over the seeds:",
+            "",
+            spread_table(pairs, per_pair),
+            "",
+        ]
+    lines += [
         "## Averages",
         "",
         "Surface and normal scores over the clouds with 16,384 points and noise 0.005 (the first four), edge "
-        "scores over those of them with sharp edges, as the data's README defines the averages.",
+        "scores over those of them with sharp edges, as the data's README defines the averages"
+        + (", and over the seeds." if seeds else "."),
         "",
         table(
-            ["config"], [((config,), average([rows[config, c] for c in clouds if "/" not in c])) for config in configs]
+            ["config"],
+            [
+                ((config,), average([results[run] for run in runs if run[0] == config and "/" not in run[1]]))
+                for config in configs
+            ],
         ),
     ]
+    return "\n".join(lines)
+
+
+def fit_threads(jobs: int) -> int:
+    """Torch threads for each of ``jobs`` fits at once: the cores split evenly, at least one."""
+    return max(1, (os.cpu_count() or 1) // jobs)
+
+
+def fit_in_subprocess(
+    config: str, cloud: str, seed: int | None, data: Path, overrides: dict, threads: int | None
+) -> dict | None:
+    """``run_one`` in a fresh process (so that its peak memory is its own); None if it failed."""
+    label = f"{cloud} with {config}" + (f", seed {seed}" if seed is not None else "")
+    print(f"fitting {label}...", file=sys.stderr, flush=True)
+    if seed is not None:
+        overrides = {**overrides, "seed": seed}
+    command = [sys.executable, __file__, "--one", config, cloud, "--data", str(data)]
+    command += [f"--set={name}={value}" for name, value in overrides.items()]
+    env = None
+    if threads is not None:  # OpenMP reads its count at start; torch's own is set in run_one
+        command += ["--threads", str(threads)]
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    done = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
+    if done.returncode != 0:
+        print(f"{label} failed:\n{done.stderr[-2000:]}", file=sys.stderr)
+        return None
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    scores = ", ".join(f"{name} {fmt.format(result[key])}" for name, key, fmt in COLUMNS[:10])
+    print(f"  {label}: {scores}", file=sys.stderr, flush=True)
+    return result
+
+
+def seed_cell(seed: object) -> list[str]:
+    """The seed column's cell of a row: none when the run names no seeds."""
+    return [] if seed is None else [str(seed)]
+
+
+def by_cloud(runs: list[tuple]) -> list[tuple]:
+    """(cloud, config, seed) in the table's order: by cloud, then configuration, then seed."""
+    clouds = list(dict.fromkeys(cloud for _, cloud, _ in runs))
+    configs = list(dict.fromkeys(config for config, _, _ in runs))
+    seeds = list(dict.fromkeys(seed for _, _, seed in runs))
+    return [(cloud, config, seed) for cloud in clouds for config in configs for seed in seeds]
+
+
+SPREAD_COLUMNS = ["chamfer_exact", "hausdorff_exact", "normal_mean_oriented", "edge_iou", "genus"]
+
+
+def spread_table(pairs: list[tuple[str, str]], per_pair: dict) -> str:
+    """Lowest to highest of the main measures over the seeds, per (cloud, config)."""
+    formats = {key: (name, fmt) for name, key, fmt in COLUMNS}
+    lines = ["| cloud | config | " + " | ".join(formats[key][0] for key in SPREAD_COLUMNS) + " |"]
+    lines.append("|" + "---|" * (2 + len(SPREAD_COLUMNS)))
+    for pair in pairs:
+        cells = []
+        for key in SPREAD_COLUMNS:
+            values = [r[key] for r in per_pair[pair] if r and r.get(key) is not None and r[key] == r[key]]
+            fmt = formats[key][1]
+            cells.append(f"{fmt.format(min(values))} – {fmt.format(max(values))}" if values else "–")
+        lines.append("| " + " | ".join([*pair, *cells]) + " |")
     return "\n".join(lines)
 
 
