@@ -108,6 +108,8 @@ COLUMNS = [
     ("extract s", "extract_seconds", "{:.1f}"),
     ("peak MB", "peak_mb", "{:.0f}"),
 ]
+# The measures whose lowest and highest over the seeds ``--seeds`` reports.
+SPREAD_COLUMNS = ["chamfer_exact", "hausdorff_exact", "normal_mean_oriented", "edge_iou", "genus"]
 
 
 def main() -> int:
@@ -269,7 +271,12 @@ def quality(
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         results = dict(zip(runs, pool.map(lambda run: fit_in_subprocess(*run, data, overrides, threads), runs)))
     params = params_for("default", overrides)
-    rows = [((cloud, config, *seed_cell(seed)), results[config, cloud, seed]) for cloud, config, seed in by_cloud(runs)]
+    rows = [
+        ((cloud, config, *seed_cell(seed)), results[config, cloud, seed])
+        for cloud in clouds
+        for config in configs
+        for seed in seeds or [None]
+    ]
     lines = [
         "## Quality and time per shape",
         "",
@@ -346,17 +353,6 @@ def fit_in_subprocess(
 def seed_cell(seed: object) -> list[str]:
     """The seed column's cell of a row: none when the run names no seeds."""
     return [] if seed is None else [str(seed)]
-
-
-def by_cloud(runs: list[tuple]) -> list[tuple]:
-    """(cloud, config, seed) in the table's order: by cloud, then configuration, then seed."""
-    clouds = list(dict.fromkeys(cloud for _, cloud, _ in runs))
-    configs = list(dict.fromkeys(config for config, _, _ in runs))
-    seeds = list(dict.fromkeys(seed for _, _, seed in runs))
-    return [(cloud, config, seed) for cloud in clouds for config in configs for seed in seeds]
-
-
-SPREAD_COLUMNS = ["chamfer_exact", "hausdorff_exact", "normal_mean_oriented", "edge_iou", "genus"]
 
 
 def spread_table(pairs: list[tuple[str, str]], per_pair: dict) -> str:
