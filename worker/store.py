@@ -119,6 +119,11 @@ return {status, 1}
 # is for the outputs of the jobs that run (noeviction: a write past maxmemory fails).
 NEW_JOB_MEMORY_SHARE = 0.9
 
+# A new job's input goes to Redis in parts of this many bytes, each a write of its own, and expires
+# this many seconds after its first part until the transaction that creates the job.
+WRITE_PART = 1 << 20
+STAGING_TTL = 600
+
 # Upper bounds (seconds) of the buckets of the stage-duration histograms; changing them restarts the histograms.
 DURATION_BUCKETS = (0.5, 1, 2.5, 5, 10, 25, 50, 100, 250, 500, 1000, 2500, 5000)
 
@@ -254,17 +259,41 @@ class JobStore:
             "points": len(points),
             "created_at": _now(),
         }
-        with self.redis.pipeline() as pipe:
-            pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
-            pipe.set(self._key(job_id, "points"), packed, ex=self.ttl)
-            pipe.hset(self._key(job_id), mapping=record)
-            pipe.expire(self._key(job_id), self.ttl)
-            pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
-            self._enqueue(job_id, job_id, pipe)
-            try:
+        points_key = self._key(job_id, "points")
+        try:
+            self._write_in_parts(points_key, packed)
+            with self.redis.pipeline() as pipe:
+                pipe.watch(points_key)  # should the input expire before EXEC, the job is not created
+                pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
+                pipe.expire(points_key, self.ttl)
+                pipe.hset(self._key(job_id), mapping=record)
+                pipe.expire(self._key(job_id), self.ttl)
+                pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
+                self._enqueue(job_id, job_id, pipe)
                 pipe.execute()
-            except OutOfMemoryError:  # full since the check: the transaction was refused whole
-                raise StoreFull(self._full_message()) from None
+        except OutOfMemoryError:  # full since the check: no record was written
+            self._forget(points_key)
+            raise StoreFull(self._full_message()) from None
+        except RedisError:
+            self._forget(points_key)
+            raise
+
+    def _write_in_parts(self, key: str, blob: memoryview) -> None:
+        """Store ``blob`` at ``key`` (expiring in ``STAGING_TTL`` s) in parts of ``WRITE_PART`` bytes.
+
+        The API's client allows ``redis_socket_timeout`` for a whole write, and a busy Redis reads
+        60 MB more slowly than that; each part is one write that fits the timeout, while a hung
+        Redis still fails the first one that it does not read."""
+        self.redis.set(key, blob[:WRITE_PART], ex=STAGING_TTL)
+        for start in range(WRITE_PART, len(blob), WRITE_PART):
+            self.redis.append(key, blob[start : start + WRITE_PART])
+
+    def _forget(self, key: str) -> None:
+        """Delete what a failed ``create`` stored, if Redis answers; else it expires on its own."""
+        try:
+            self.redis.delete(key)
+        except RedisError:
+            pass
 
     def _check_room(self, size: int) -> None:
         """Raise ``StoreFull`` unless ``size`` more bytes keep Redis under ``NEW_JOB_MEMORY_SHARE`` of its maxmemory."""

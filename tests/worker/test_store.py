@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import importlib
+import socket
 import threading
 import time
 import uuid
@@ -16,11 +17,13 @@ import uuid
 import numpy as np
 import pytest
 from redis.asyncio import Redis as AsyncRedis
+from redis.exceptions import RedisError
 from rq.job import Job
 from rq.serializers import JSONSerializer
 
 from core.params import FitParams
 from tests.helpers import sphere
+from worker.connection import connect
 from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobStatus, Progress, Stage, new_job_id
 from worker.errors import InputExpired, InvalidJobId
 from worker.settings import Settings
@@ -269,6 +272,76 @@ def test_an_expired_input_is_a_typed_error(store):
     store.redis.delete(f"{store.prefix}:job:{job_id}:points")
     with pytest.raises(InputExpired, match="input has expired"):
         store.load_points(job_id)
+
+
+class _ThrottledRelay:
+    """A TCP relay to Redis on ``port`` that passes at most ``rate`` bytes per second towards it:
+    a slow link, or a Redis that reads slowly. Its ``url`` is what clients connect to."""
+
+    def __init__(self, port: int, rate: float):
+        self.port, self.rate = port, rate
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 16)  # little held in buffers
+
+    def __enter__(self) -> str:
+        threading.Thread(target=self._accept, daemon=True).start()
+        return f"redis://127.0.0.1:{self.listener.getsockname()[1]}/0"
+
+    def __exit__(self, *exc) -> None:
+        self.listener.close()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:  # closed
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.port))
+            threading.Thread(target=self._pass, args=(client, upstream, self.rate), daemon=True).start()
+            threading.Thread(target=self._pass, args=(upstream, client, 0), daemon=True).start()
+
+    @staticmethod
+    def _pass(source: socket.socket, sink: socket.socket, rate: float) -> None:
+        with source, sink:
+            try:
+                while data := source.recv(1 << 16):
+                    sink.sendall(data)
+                    if rate:
+                        time.sleep(len(data) / rate)
+            except OSError:  # the other side closed
+                pass
+
+
+def test_a_large_input_is_stored_over_a_link_too_slow_to_send_it_within_one_socket_timeout(redis_server, settings):
+    """The API's client gives Redis 0.5 s per answer; a 12 MB input over a 4 MB/s link takes 3 s.
+
+    A busy machine's Redis reads that slowly (CI: a 60 MB upload answered 503 "Timeout writing to
+    socket"): the input goes in parts that each fit the timeout, and the job exists only once all
+    of it is stored."""
+    points = np.random.default_rng(0).normal(size=(500_000, 3))  # 12 MB, deflate cannot shrink it
+    with _ThrottledRelay(redis_server.port, rate=4 << 20) as url:
+        redis = connect(url, fail_fast=True, socket_timeout=0.5)
+        store = JobStore(redis, settings)
+        job_id = new_job(store, points)
+        np.testing.assert_array_equal(store.load_points(job_id), points)
+        assert store.get(job_id).status == JobStatus.QUEUED and store.queue.job_ids == [job_id]
+        redis.close()
+
+
+def test_an_input_redis_does_not_take_in_time_creates_no_job(redis_server, settings):
+    """A write that times out is a RedisError (the API's 503) and leaves no record and no queued job;
+    a part that Redis reads later expires with its staging time."""
+    direct = JobStore(redis_server.client(), settings)
+    with _ThrottledRelay(redis_server.port, rate=100_000) as url:
+        store = JobStore(connect(url, fail_fast=True, socket_timeout=0.5), settings)
+        job_id, began = new_job_id(), time.monotonic()
+        with pytest.raises(RedisError, match="Timeout"):
+            store.create(job_id, np.random.default_rng(0).normal(size=(100_000, 3)), PARAMS)
+        assert time.monotonic() - began < 5
+        assert direct.get(job_id) is None and direct.queue.job_ids == []
+        assert direct.redis.ttl(f"{store.prefix}:job:{job_id}:points") in (-2, *range(1, 601))
+        store.redis.close()
+    direct.redis.close()
 
 
 # --- races -----------------------------------------------------------------------------------------
