@@ -151,10 +151,13 @@ def _sharpen(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Move the vertices of patches in an edge's band onto the sharp surface of the side planes.
 
-    Each such vertex first goes onto the plane nearer its crossings (one side's face). Where that
-    point lies beyond the other face's plane (outside a convex edge's wedge, inside a concave
-    one's), the vertex belongs on the edge, or on a corner: the QEF of all its side planes. These
-    vertices may move ``SHARP_SLACK`` cells, as far as the fitted rounding lies from the edge.
+    Each crossing of such a patch contributes the plane of the face it lies nearer; the vertex is
+    the QEF of those planes. A patch whose crossings are all nearer one face goes onto that face,
+    one whose crossings are nearer two faces onto their edge, and one at a corner, with crossings
+    near three faces, onto the corner. (Fitting both planes of every crossing instead put a
+    corner's vertex on one of its edges: a box rounded by 0.02 kept its corners 0.011 to 0.0125
+    from the mesh, against 0.003 to 0.008 here.) These vertices may move ``SHARP_SLACK`` cells, as
+    far as the fitted rounding lies from the edge.
     """
     a = sides.points_a[key_vertex], sides.normals_a[key_vertex]
     b = sides.points_b[key_vertex], sides.normals_b[key_vertex]
@@ -168,17 +171,8 @@ def _sharpen(
     offset_b = np.abs(np.einsum("ij,ij->i", b[1], crossings - b[0]))
     nearer_a = (offset_a <= offset_b)[:, None]
     nearer = np.where(nearer_a, a[0], b[0]), np.where(nearer_a, a[1], b[1])
-    other = np.where(nearer_a, b[0], a[0]), np.where(nearer_a, b[1], a[1])
-    one_side, _ = _place(patch_of_key, [nearer], crossings, patches)
-    both, _ = _place(patch_of_key, [a, b], crossings, patches)
-    # Convex edge: each side's point lies below the other side's plane; beyond means above it.
-    convex = np.einsum("ij,ij->i", a[1], b[0] - a[0]) < 0
-    beyond = np.einsum("ij,ij->i", other[1], one_side[patch_of_key] - other[0])
-    beyond = np.where(convex, beyond, -beyond) > 0
-    on_edge = np.zeros(patches, dtype=bool)
-    on_edge[patch_of_key[edge & beyond]] = True
-    chosen = np.where(on_edge[:, None], both, one_side)
-    return np.where(sharp[:, None], chosen, placed), np.where(sharp, SHARP_SLACK, slack)
+    faces, _ = _place(patch_of_key, [nearer], crossings, patches)
+    return np.where(sharp[:, None], faces, placed), np.where(sharp, SHARP_SLACK, slack)
 
 
 def _quads(

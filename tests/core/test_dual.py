@@ -147,6 +147,20 @@ def test_sharpening_restores_the_edges_a_fit_rounds():
         assert bound[0] <= np.percentile(gap, 99) < bound[1]
 
 
+@pytest.mark.parametrize("rotation", [IDENTITY, ROTATION], ids=["aligned", "rotated"])
+def test_sharpening_brings_the_mesh_back_to_the_corners_a_fit_rounds(rotation):
+    # A box rounded by 0.02 keeps its corners 0.73 r = 0.0146 from the rounding. Each crossing's
+    # vertex goes onto the plane of the face it lies nearer, so a corner's patch, with crossings
+    # near three faces, lands on the corner; fitting both planes of every crossing put it on one
+    # of the corner's edges instead (0.011 from the corner, rotated 0.0125).
+    rounded = functools.partial(box, rotation=rotation, radius=0.02)
+    grid = sample_grid(rounded, 160, LOW, HIGH)
+    mesh = dual_contour(grid, rounded, lambda x: (rounded(x), gradient(rounded, x)), sharpen=True)
+    truth = box_mesh(rotation)
+    assert distance_to_mesh(truth.vertices, mesh.vertices, mesh.faces).max() < 0.6 * 0.73 * 0.02
+    assert mesh.is_watertight and mesh.is_winding_consistent
+
+
 @pytest.mark.parametrize("radius, edges", [(0.015, True), (0.03, True), (0.04, False), (0.05, False)])
 def test_a_rounding_as_narrow_as_a_fits_is_an_edge_and_a_wider_bend_is_not(radius, edges):
     # A fit rounds a sharp edge over a band 0.02 to 0.035 wide (a box rounded by 0.015 to 0.03);
