@@ -248,8 +248,8 @@ class JobStore:
     # --- the API's side ----------------------------------------------------------------------------
 
     def create(self, job_id: str, points: np.ndarray, params: FitParams) -> None:
-        """Store the input and the record of a new job and enqueue it, all in one transaction;
-        ``StoreFull`` (and nothing stored) when Redis has no room for it."""
+        """Store the input of a new job (``_write_in_parts``), then its record and its rq job in one
+        transaction; ``StoreFull`` (and no job) when Redis has no room for it."""
         self.redis.ping()  # a hung Redis fails here, before a write it might apply after the API answered 503
         packed = _pack_array(points)
         self._check_room(len(packed))
@@ -262,21 +262,26 @@ class JobStore:
         points_key = self._key(job_id, "points")
         try:
             self._write_in_parts(points_key, packed)
-            with self.redis.pipeline() as pipe:
-                pipe.watch(points_key)  # should the input expire before EXEC, the job is not created
-                pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
-                pipe.expire(points_key, self.ttl)
-                pipe.hset(self._key(job_id), mapping=record)
-                pipe.expire(self._key(job_id), self.ttl)
-                pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
-                self._enqueue(job_id, job_id, pipe)
-                pipe.execute()
-        except OutOfMemoryError:  # full since the check: no record was written
+        except RedisError as error:
             self._forget(points_key)
-            raise StoreFull(self._full_message()) from None
-        except RedisError:
-            self._forget(points_key)
+            if isinstance(error, OutOfMemoryError):
+                raise StoreFull(self._full_message()) from None
             raise
+        with self.redis.pipeline() as pipe:
+            pipe.watch(points_key)  # should the input expire before EXEC, the job is not created
+            pipe.multi()  # MULTI/EXEC: all of it or nothing (and rq wants the transaction opened)
+            pipe.expire(points_key, self.ttl)
+            pipe.hset(self._key(job_id), mapping=record)
+            pipe.expire(self._key(job_id), self.ttl)
+            pipe.hincrby(f"{self.prefix}:counts", JobStatus.QUEUED.value, 1)
+            self._enqueue(job_id, job_id, pipe)
+            # Another error of EXEC (an answer lost) may come after Redis applied it: the input is
+            # then the job's and stays; if not applied, it expires within STAGING_TTL.
+            try:
+                pipe.execute()
+            except OutOfMemoryError:  # full since the check: the transaction was refused whole
+                self._forget(points_key)
+                raise StoreFull(self._full_message()) from None
 
     def _write_in_parts(self, key: str, blob: memoryview) -> None:
         """Store ``blob`` at ``key`` (expiring in ``STAGING_TTL`` s) in parts of ``WRITE_PART`` bytes.

@@ -25,7 +25,8 @@ from core.params import FitParams
 from tests.helpers import sphere
 from worker.connection import connect
 from worker.contract import JOB_FUNCTION, ORPHANED, OUTPUT_NAMES, JobStatus, Progress, Stage, new_job_id
-from worker.errors import InputExpired, InvalidJobId
+from worker.errors import InputExpired, InvalidJobId, StoreFull
+from worker.redis_server import RedisServer
 from worker.settings import Settings
 from worker.store import JobStore
 
@@ -342,6 +343,23 @@ def test_an_input_redis_does_not_take_in_time_creates_no_job(redis_server, setti
         assert direct.redis.ttl(f"{store.prefix}:job:{job_id}:points") in (-2, *range(1, 601))
         store.redis.close()
     direct.redis.close()
+
+
+def test_an_input_that_fills_redis_midway_is_store_full_and_leaves_nothing(tmp_path, settings, monkeypatch):
+    """Redis refuses a part (noeviction, maxmemory 4 MB, a 12 MB input; the check of room before
+    is skipped, as when another upload filled Redis since): StoreFull, no job, no part left."""
+    server = RedisServer(tmp_path, maxmemory=4 << 20).start()
+    try:
+        store = JobStore(server.client(), settings)
+        monkeypatch.setattr(store, "_check_room", lambda size: None)
+        job_id = new_job_id()
+        with pytest.raises(StoreFull):
+            store.create(job_id, np.random.default_rng(0).normal(size=(500_000, 3)), PARAMS)
+        assert store.get(job_id) is None and store.queue.job_ids == []
+        assert store.redis.keys(f"{store.prefix}:job:*") == []
+        store.redis.close()
+    finally:
+        server.stop()
 
 
 # --- races -----------------------------------------------------------------------------------------
