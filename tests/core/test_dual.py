@@ -147,6 +147,26 @@ def test_sharpening_restores_the_edges_a_fit_rounds():
         assert bound[0] <= np.percentile(gap, 99) < bound[1]
 
 
+def test_a_thin_plates_edges_are_sharpened_though_its_wall_is_narrower_than_the_walk():
+    # A plate 0.05 thick rounded by 0.012: a walk down its wall from one edge's band reaches the
+    # other edge's rounding before one and a half SIDE_STEP, so its far reading is not flat; the
+    # wall is read nearer (features._WINDOWS). Read only at SIDE_STEP, the edges kept their
+    # rounding (99th percentile 0.0050 from the mesh) and the band's creases gave 8.5 of curves.
+    half = np.array([0.3, 0.25, 0.025])
+    rounded = functools.partial(box, half=half, radius=0.012)
+    grid = sample_grid(rounded, 160, LOW, HIGH)
+    mesh = dual_contour(grid, rounded, lambda x: (rounded(x), gradient(rounded, x)))
+    truth = trimesh.creation.box(2 * half)
+    segments = truth.vertices[truth.face_adjacency_edges[truth.face_adjacency_angles > 1.0]]
+    t = np.linspace(0, 1, 400)[:, None]
+    on_edges = np.concatenate([a + t * (b - a) for a, b in segments])
+    away = np.min([np.linalg.norm(on_edges - corner, axis=1) for corner in truth.vertices], axis=0) >= 0.03
+    assert np.percentile(distance_to_mesh(on_edges[away], mesh.vertices, mesh.faces), 99) < 0.001
+    # The twelve edges are 4.6 long; each curve stops short of the corners.
+    assert 4.3 < sum(curve.length for curve in edge_curves(mesh, 30.0, 0.02, 0.005)) < 4.6
+    assert mesh.is_watertight and mesh.is_winding_consistent
+
+
 @pytest.mark.parametrize("rotation", [IDENTITY, ROTATION], ids=["aligned", "rotated"])
 def test_sharpening_brings_the_mesh_back_to_the_corners_a_fit_rounds(rotation):
     # A box rounded by 0.02 keeps its corners 0.73 r = 0.0146 from the rounding. Each crossing's
