@@ -167,6 +167,16 @@ def test_a_thin_plates_edges_are_sharpened_though_its_wall_is_narrower_than_the_
     assert mesh.is_watertight and mesh.is_winding_consistent
 
 
+def test_a_wall_read_nearer_its_edge_must_turn_on_as_a_plates_does():
+    # Across a plate's edge: top (+z), then its wall (+x), then the bottom (-z) beyond the wall's
+    # other edge; a stair's step turns back instead (tread, riser, next tread).
+    up, out, down = np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 0, -1]])
+    nearer, first = np.array([3]), np.array([features._WINDOWS[0][0]])
+    assert features._wall_turns_on(nearer, up, out, down).all()
+    assert not features._wall_turns_on(nearer, up, out, up).any()
+    assert features._wall_turns_on(first, up, out, up).all()
+
+
 @pytest.mark.parametrize("rotation", [IDENTITY, ROTATION], ids=["aligned", "rotated"])
 def test_sharpening_brings_the_mesh_back_to_the_corners_a_fit_rounds(rotation):
     # A box rounded by 0.02 keeps its corners 0.73 r = 0.0146 from the rounding. Each crossing's
