@@ -422,6 +422,8 @@ def _stand_in_api():
         job_id = secrets.token_urlsafe(16)[:22]
         jobs[job_id] = {"breaks": form.get("seed") == "1"}
         app.state.forms.append({name: value for name, value in form.items() if name != "points"})
+        # The form is seen here before the page has the answer, as on a loaded machine.
+        await asyncio.sleep(0.5)
         return view(job_id, "queued")
 
     @app.get("/v1/jobs/{job_id}")
@@ -479,7 +481,8 @@ def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(sta
     page.click("#params summary")
     page.uncheck("#param-edge_sampling")
     page.select_option("#param-laplacian_penalty", "quadratic")
-    submit(page, EXAMPLE_CLOUD, {"iterations": 50})
+    first_job = submit(page, EXAMPLE_CLOUD, {"iterations": 50})
+    assert first_job
     # Only what was changed is sent, booleans and choices as the API reads them.
     assert app.state.forms[-1] == {"iterations": "50", "edge_sampling": "false", "laplacian_penalty": "quadratic"}
     wait_status(page, "succeeded", timeout=20)
@@ -511,6 +514,10 @@ def test_page_uses_the_event_stream_preview_and_curves_when_the_api_has_them(sta
     # The job panel is already open from the first job: wait for this job's form to arrive.
     wait_for(lambda: len(app.state.forms) > sent, 10, 0.05, "the second job's form")
     assert app.state.forms[-1] == {"iterations": "50", "seed": "1"}
+    # Until the page has the API's answer, its panel still shows the first job, succeeded.
+    page.wait_for_function(
+        "first => document.querySelector('#job-list li.current')?.dataset.job !== first", arg=first_job, timeout=10_000
+    )
     wait_status(page, "succeeded", timeout=20)
     assert "the event stream ended early" in page.inner_text("#job-updates")
     # No preview.json: the input points are read from the file picked here, the normals from normals.json.
