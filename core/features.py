@@ -50,12 +50,6 @@ _WINDOWS = ((4, 6), (3, 5), (2, 4))
 # edge), on the way it turned at this edge (``_wall_turns_on``). Without the first the bunny's false
 # edges went from 1.15 % to 2.23 % of its points; with the first only, to 1.45 %; with both 1.22 %.
 _NEXT_EDGE_TURNING = 20.0
-# A side with no flat window is still read at its flattest, if that turns by less than
-# LOOSE_FLAT_TURNING degrees, beside a flat face at least STEEP_TURNING degrees away
-# (``_flattest_beside``): the flange's edge IoU 0.578 -> 0.608 and curve ECD 0.0050 -> 0.0038 on
-# one fit (seed 1: 0.545 -> 0.556, 0.0074 -> 0.0062), the bunny's false edges 1.22 -> 1.26 %.
-LOOSE_FLAT_TURNING = 10.0
-STEEP_TURNING = 60.0
 WALK_SPACING = 0.015  # unit frame: one walk per cube of this size
 
 
@@ -86,9 +80,6 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     start, direction = crossings[candidates[walker]], across[walker]
     walks = [_walk(start, sign * direction, derivatives_at) for sign in (1.0, -1.0)]
     (point_a, normal_a, turns_a, read_a), (point_b, normal_b, turns_b, read_b) = [_face_beside(*w) for w in walks]
-    # A side with no flat reading beside a flat one, far turned from it: its flattest reading.
-    point_b, normal_b, read_b = _flattest_beside(*walks[1], point_b, normal_b, read_b, normal_a, read_a)
-    point_a, normal_a, read_a = _flattest_beside(*walks[0], point_a, normal_a, read_a, normal_b, read_b)
     edge = (
         (read_a > 0)
         & (read_b > 0)
@@ -185,40 +176,6 @@ def _face_beside(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, n
     reading = np.arange(1, normals.shape[1] + 1)
     held = np.where((reading > far[:, None])[:, :, None], normals[rows, far - 1][:, None], normals)
     return points[rows, near - 1], normals[rows, near - 1], held, np.where(flat, near, 0)
-
-
-def _flattest_beside(
-    points: np.ndarray,
-    normals: np.ndarray,
-    point: np.ndarray,
-    normal: np.ndarray,
-    read: np.ndarray,
-    other_normal: np.ndarray,
-    other_read: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The face of one side (``point``, ``normal``, ``read`` from ``_face_beside``) where no window
-    was flat, replaced by its flattest window's start if that turns by less than
-    ``LOOSE_FLAT_TURNING``, the other side was flat and the two faces are ``STEEP_TURNING`` apart:
-    the wall of a thin plate, which a fit bulges over its whole height (the flange's bore: 84° to
-    90° from the top face over the wall's 0.02 readings)."""
-    rows = np.arange(len(points))
-    turn = np.stack(
-        [np.einsum("ij,ij->i", normals[:, first - 1], normals[:, last - 1]) for first, last in _WINDOWS], axis=1
-    )
-    best = np.argmax(turn, axis=1)
-    start = np.asarray([first for first, _ in _WINDOWS])[best]
-    candidate = normals[rows, start - 1]
-    loose = (
-        (read == 0)
-        & (other_read > 0)
-        & (turn[rows, best] > np.cos(np.radians(LOOSE_FLAT_TURNING)))
-        & (np.einsum("ij,ij->i", candidate, other_normal) < np.cos(np.radians(STEEP_TURNING)))
-    )
-    return (
-        np.where(loose[:, None], points[rows, start - 1], point),
-        np.where(loose[:, None], candidate, normal),
-        np.where(loose, start, read),
-    )
 
 
 def _wall_turns_on(read: np.ndarray, before: np.ndarray, face: np.ndarray, last: np.ndarray) -> np.ndarray:

@@ -167,27 +167,6 @@ def test_a_thin_plates_edges_are_sharpened_though_its_wall_is_narrower_than_the_
     assert mesh.is_watertight and mesh.is_winding_consistent
 
 
-def test_a_thin_discs_bulging_wall_is_read_at_its_flattest():
-    # A disc 0.06 thick whose wall is a sphere of radius 0.15 (its normal turns by 7.6° over 0.02,
-    # as a fit bulges a thin wall), rims rounded by 0.012: no window of the wall is flat within
-    # FLAT_TURNING, so without features._flattest_beside its rims kept their rounding (0.0048 from
-    # the mesh) and had no curve; read at its flattest, they come back.
-    radius, half, rounding = 0.15, 0.03, 0.012
-
-    def disc(x: np.ndarray) -> np.ndarray:
-        q = np.stack([np.abs(x[:, 2]) - (half - rounding), np.linalg.norm(x, axis=1) - (radius - rounding)], axis=1)
-        return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0) - rounding
-
-    grid = sample_grid(disc, 160, LOW, HIGH)
-    mesh = dual_contour(grid, disc, lambda x: (disc(x), gradient(disc, x)))
-    rim = np.sqrt(radius**2 - half**2)
-    t = np.linspace(0, 2 * np.pi, 800, endpoint=False)[:, None]
-    rims = np.concatenate([np.hstack([rim * np.cos(t), rim * np.sin(t), np.full_like(t, z)]) for z in (-half, half)])
-    assert np.percentile(distance_to_mesh(rims, mesh.vertices, mesh.faces), 99) < 0.001
-    assert 1.75 < sum(curve.length for curve in edge_curves(mesh, 30.0, 0.02, 0.005)) < 1.9  # the rims: 1.85
-    assert mesh.is_watertight and mesh.is_winding_consistent
-
-
 def test_a_wall_read_nearer_its_edge_must_turn_on_as_a_plates_does():
     # Across a plate's edge: top (+z), then its wall (+x), then the bottom (-z) beyond the wall's
     # other edge; a stair's step turns back instead (tread, riser, next tread).
