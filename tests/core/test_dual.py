@@ -124,6 +124,16 @@ def test_every_corner_of_a_polytope_gets_a_vertex(name):
     assert nearest.max() < 0.2 * CELL
 
 
+def _along_edges_away_from_corners(truth: trimesh.Trimesh) -> np.ndarray:
+    """Points (n, 3) every 1/400 of each sharp edge of the polytope ``truth``, those 0.03 or more
+    from every corner (where a rounding cuts the corner itself)."""
+    segments = truth.vertices[truth.face_adjacency_edges[truth.face_adjacency_angles > 1.0]]
+    t = np.linspace(0, 1, 400)[:, None]
+    on_edges = np.concatenate([a + t * (b - a) for a, b in segments])
+    away = np.min([np.linalg.norm(on_edges - corner, axis=1) for corner in truth.vertices], axis=0) >= 0.03
+    return on_edges[away]
+
+
 def test_sharpening_restores_the_edges_a_fit_rounds():
     # A box rounded by 0.01, as a fitted network rounds its edges, against the sharp box: the side
     # planes move the rounded band's vertices onto the sharp edges (its corners stay cut).
@@ -138,12 +148,9 @@ def test_sharpening_restores_the_edges_a_fit_rounds():
     assert sharp_mesh.is_watertight and sharp_mesh.is_winding_consistent
     # Along the 12 edges, 0.03 or more from a corner: the rounding leaves them 0.41 r = 0.004 away.
     truth = box_mesh()
-    segments = truth.vertices[truth.face_adjacency_edges[truth.face_adjacency_angles > 1.0]]
-    t = np.linspace(0, 1, 400)[:, None]
-    on_edges = np.concatenate([a + t * (b - a) for a, b in segments])
-    away = np.min([np.linalg.norm(on_edges - corner, axis=1) for corner in truth.vertices], axis=0) >= 0.03
+    on_edges = _along_edges_away_from_corners(truth)
     for mesh, bound in ((plain_mesh, (0.003, np.inf)), (sharp_mesh, (0.0, 0.001))):
-        gap = distance_to_mesh(on_edges[away], mesh.vertices, mesh.faces)
+        gap = distance_to_mesh(on_edges, mesh.vertices, mesh.faces)
         assert bound[0] <= np.percentile(gap, 99) < bound[1]
 
 
@@ -157,11 +164,8 @@ def test_a_thin_plates_edges_are_sharpened_though_its_wall_is_narrower_than_the_
     grid = sample_grid(rounded, 160, LOW, HIGH)
     mesh = dual_contour(grid, rounded, lambda x: (rounded(x), gradient(rounded, x)))
     truth = trimesh.creation.box(2 * half)
-    segments = truth.vertices[truth.face_adjacency_edges[truth.face_adjacency_angles > 1.0]]
-    t = np.linspace(0, 1, 400)[:, None]
-    on_edges = np.concatenate([a + t * (b - a) for a, b in segments])
-    away = np.min([np.linalg.norm(on_edges - corner, axis=1) for corner in truth.vertices], axis=0) >= 0.03
-    assert np.percentile(distance_to_mesh(on_edges[away], mesh.vertices, mesh.faces), 99) < 0.001
+    on_edges = _along_edges_away_from_corners(truth)
+    assert np.percentile(distance_to_mesh(on_edges, mesh.vertices, mesh.faces), 99) < 0.001
     # The twelve edges are 4.6 long; each curve stops short of the corners.
     assert 4.3 < sum(curve.length for curve in edge_curves(mesh, 30.0, 0.02, 0.005)) < 4.6
     assert mesh.is_watertight and mesh.is_winding_consistent
