@@ -110,6 +110,31 @@ def test_derivatives_float32_close_to_float64_reference(kernels, depth, width, b
     check_against_reference(model, x, rows, tol_values=2e-5, tol_weights=1e-3)
 
 
+@pytest.mark.parametrize("depth, width, beta", ARCHITECTURES + [(4, 32, 200.0)])
+def test_reverse_mode_gradient_matches_autograd_float64(depth, width, beta):
+    model = random_network(depth, width, beta)
+    x = random_points()
+    f, grad = model.gradient(x)
+    f_ref, grad_ref, _ = derivatives_autograd(as_double(model), x)
+    assert f.shape == (len(x),) and grad.shape == (len(x), 3)
+    assert relative(f, f_ref) <= 1e-12
+    assert relative(grad, grad_ref) <= 1e-12
+
+
+@pytest.mark.parametrize("depth, width, beta", [(1, 32, 100.0), (4, 24, 100.0), (4, 64, 200.0)])
+def test_reverse_mode_gradient_float32_as_close_as_the_forward_mode(depth, width, beta):
+    """The extraction's float32 ∇f: within float32 rounding of the float64 reference, as the
+    forward-mode ∇f is."""
+    model = random_network(depth, width, beta, dtype=torch.float32)
+    x = random_points(200, dtype=torch.float32)
+    f_ref, grad_ref, _ = derivatives_autograd(as_double(model), x.double())
+    with torch.no_grad():
+        f, grad = model.gradient(x)
+        _, grad_forward, _ = model.derivatives(x, laplacian_rows=0)
+    assert relative(f, f_ref) <= 2e-6
+    assert relative(grad, grad_ref) <= max(2e-6, 2 * relative(grad_forward, grad_ref))
+
+
 def test_laplacian_is_not_trivial():
     """The comparisons above are meaningful: the perturbed networks have large, varied Δf."""
     model = random_network(4, 24, 100.0)
