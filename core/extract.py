@@ -151,11 +151,13 @@ def sample_grid(
     """f on a grid over the box [low, high] plus a margin, evaluated only where the surface may be.
 
     The cells are (1 + 2 * GRID_MARGIN) / ``resolution`` wide. f is evaluated on a coarse grid
-    first; each finer level evaluates only the cells that may hold the surface: near the zero
-    level on intermediate levels, and at the finest level the cells whose coarse parent changes
-    sign, grown along the surface until every cell the surface crosses has all its corners
-    evaluated (the other nodes hold interpolated values of the right sign). The grid's boundary is
-    kept outside (f > 0) so that the surface is always closed.
+    first; each finer level starts from the coarser one's values interpolated (trilinear, so a
+    cell whose coarse parent has corners of one sign keeps that sign) and evaluates only the cells
+    that may hold the surface: near the zero level on intermediate levels; at the finest level
+    every cell whose corners (evaluated or interpolated) change sign, again after each evaluation
+    (a node found on the other side of the surface than its interpolation said turns the cells
+    around it), until every cell that changes sign has all its corners evaluated. The grid's
+    boundary is kept outside (f > 0) so that the surface is always closed.
     """
     cell = (1.0 + 2 * GRID_MARGIN) / resolution
     levels = max(0, int(math.floor(math.log2(resolution / _COARSEST_CELLS))))
@@ -170,18 +172,20 @@ def sample_grid(
     for level in range(levels - 1, -1, -1):
         check_cancel(should_cancel)
         spacing = cell * 2**level
-        finest = level == 0
-        parents = _sign_change_cells(values) if finest else _near_cells(values, spacing * 2)
+        near = None if level == 0 else _near_cells(values, spacing * 2)
         values = zoom(values, (2 * np.asarray(values.shape) - 1) / np.asarray(values.shape), order=1)
         was_known, known = known, np.zeros(values.shape, dtype=bool)
         known[::2, ::2, ::2] = was_known
-        wanted = _cell_nodes(_split_cells(parents)) & ~known
+        if near is not None:
+            wanted = _cell_nodes(_split_cells(near)) & ~known
+            values[wanted] = values_at(origin + np.argwhere(wanted) * spacing)
+            known |= wanted
+            continue
+        wanted = _cell_nodes(_sign_change_cells(values)) & ~known
         while wanted.any():
             values[wanted] = values_at(origin + np.argwhere(wanted) * spacing)
             known |= wanted
-            if not finest:
-                break
-            wanted = _surface_neighbour_nodes(values, known)
+            wanted = _cell_nodes(_sign_change_cells(values)) & ~known
 
     if not (values.min() < 0 < values.max()):
         raise EmptySurfaceError("the fitted function has no zero level set: no surface was found")
@@ -216,41 +220,6 @@ def _sign_change_cells(values: np.ndarray) -> np.ndarray:
 def _split_cells(cells: np.ndarray) -> np.ndarray:
     """Each cell of a level as its eight children on the next finer level."""
     return cells.repeat(2, axis=0).repeat(2, axis=1).repeat(2, axis=2)
-
-
-def _surface_neighbour_nodes(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Unknown nodes of the cells the surface enters from a fully known cell through a face.
-
-    A cell whose corners are all known and change sign holds surface; through each face whose
-    own four corners change sign the surface continues into the neighbouring cell.
-    """
-    crossing = _sign_change_cells(values) & _all_corners(known)
-    wanted = np.zeros(crossing.shape, dtype=bool)
-    for axis in range(3):
-        inner = _sign_change_faces(values, axis)  # the faces between two cells along `axis`
-        lower, upper = [slice(None)] * 3, [slice(None)] * 3
-        lower[axis], upper[axis] = slice(0, -1), slice(1, None)
-        wanted[tuple(lower)] |= crossing[tuple(upper)] & inner
-        wanted[tuple(upper)] |= crossing[tuple(lower)] & inner
-    return _cell_nodes(wanted) & ~known
-
-
-def _sign_change_faces(values: np.ndarray, axis: int) -> np.ndarray:
-    """For each face across ``axis`` between two cells: do its four corners change sign?"""
-    n = np.asarray(values.shape) - 1
-    corners = []
-    for db, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        index = [slice(1, -1)] * 3
-        b, c = [a for a in range(3) if a != axis]
-        index[b], index[c] = slice(db, db + n[b]), slice(dc, dc + n[c])
-        corners.append(values[tuple(index)])
-    return (np.minimum.reduce(corners) < 0) & (np.maximum.reduce(corners) >= 0)
-
-
-def _all_corners(nodes: np.ndarray) -> np.ndarray:
-    """Cells whose eight corner nodes are all set in ``nodes``."""
-    nx, ny, nz = np.asarray(nodes.shape) - 1
-    return np.logical_and.reduce([nodes[dx : dx + nx, dy : dy + ny, dz : dz + nz] for dx, dy, dz in _CORNERS])
 
 
 def _cell_nodes(cells: np.ndarray) -> np.ndarray:
