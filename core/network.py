@@ -116,11 +116,11 @@ class ImplicitNetwork(nn.Module):
         weight = first.weight * beta
         u = F.linear(x, weight, first.bias * beta)
         slopes = [torch.sigmoid(u)]
-        h = F.softplus(u, 1.0, _SOFTPLUS_THRESHOLD)
+        h = _softplus(u)
         for layer in hidden:
             u = F.linear(h, layer.weight, layer.bias * beta)
             slopes.append(torch.sigmoid(u))
-            h = F.softplus(u, 1.0, _SOFTPLUS_THRESHOLD)
+            h = _softplus(u)
         f = F.linear(h, last.weight / beta, last.bias).squeeze(-1)
         # ∂f/∂h of the last hidden layer, then back through each layer: ∂h'/∂h = diag(σ'(u')) W'.
         back = slopes.pop() * (last.weight / beta)
