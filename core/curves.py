@@ -75,6 +75,39 @@ def edge_curves(mesh: trimesh.Trimesh, angle: float, min_length: float, spacing:
     return curves
 
 
+def without_isolated(curves: list[Curve], gap: float, min_length: float, keep_dihedral: float) -> list[Curve]:
+    """The ``curves`` that belong to a group at least ``min_length`` long in all, a group being the
+    curves linked end to end (an end within ``gap`` of another curve's end, transitively), and
+    those whose faces meet at less than ``keep_dihedral`` degrees, however short.
+
+    A part's edges meet at its corners, and its curves stop within a few hundredths of one another
+    where the extraction breaks an edge; a crease of a smooth scan's detail (a fold, an ear's base)
+    stands alone and short, and turns by 35-50°. Length alone does not tell them apart (a part's
+    edges come out in pieces as short as the creases), and a poor fit finds a part's right-angled
+    edges in lone pieces too.
+    """
+    if not curves:
+        return []
+    ends = np.array([[curve.points[0], curve.points[-1]] for curve in curves]).reshape(-1, 3)
+    group = np.arange(len(curves))
+    for a, b in kd_tree(ends).query_pairs(gap):
+        _join(group, a // 2, b // 2)
+    roots = np.array([_root(group, i) for i in range(len(curves))])
+    length = np.bincount(roots, weights=[curve.length for curve in curves], minlength=len(curves))
+    return [curve for curve, root in zip(curves, roots) if length[root] >= min_length or curve.dihedral < keep_dihedral]
+
+
+def _root(group: np.ndarray, i: int) -> int:
+    while group[i] != i:
+        group[i] = group[group[i]]
+        i = group[i]
+    return int(i)
+
+
+def _join(group: np.ndarray, a: int, b: int) -> None:
+    group[_root(group, a)] = _root(group, b)
+
+
 def distance_to_curves(
     points: np.ndarray, curves: list[Curve], spacing: float, within: float = np.inf, workers: int = 1
 ) -> np.ndarray:
