@@ -20,7 +20,7 @@ def segment(start: list[float], end: list[float], samples: int = 5, dihedral: fl
 
 
 def loop(centre: list[float], radius: float, samples: int = 40) -> Curve:
-    """A closed circle (first and last point the same), like a small hole's rim."""
+    """A closed circle (first and last point the same) whose faces meet at 140°."""
     angle = np.linspace(0.0, 2 * np.pi, samples)
     points = np.asarray(centre) + radius * np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
     normals = np.tile([0.0, 0.0, 1.0], (samples, 1))
@@ -60,7 +60,7 @@ def test_groups_are_linked_transitively_at_either_end():
 
 
 @pytest.mark.parametrize("radius, survives", [(0.011, True), (0.009, False)])
-def test_a_shallow_loops_count_is_its_circumference(radius, survives):
+def test_a_shallow_loop_counts_by_its_circumference(radius, survives):
     # 2π r: 0.069 for a loop of radius 0.011, 0.057 for 0.009. (A small hole's rim is a right
     # angle and stays whatever its size: the keep angle.)
     assert kept([loop([0, 0, 0], radius)]) == ([0] if survives else [])
