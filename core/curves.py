@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from core.trees import kd_tree
 
@@ -89,23 +91,11 @@ def without_isolated(curves: list[Curve], gap: float, min_length: float, keep_di
     if not curves:
         return []
     ends = np.array([[curve.points[0], curve.points[-1]] for curve in curves]).reshape(-1, 3)
-    group = np.arange(len(curves))
-    for a, b in kd_tree(ends).query_pairs(gap):
-        _join(group, a // 2, b // 2)
-    roots = np.array([_root(group, i) for i in range(len(curves))])
-    length = np.bincount(roots, weights=[curve.length for curve in curves], minlength=len(curves))
-    return [curve for curve, root in zip(curves, roots) if length[root] >= min_length or curve.dihedral < keep_dihedral]
-
-
-def _root(group: np.ndarray, i: int) -> int:
-    while group[i] != i:
-        group[i] = group[group[i]]
-        i = group[i]
-    return int(i)
-
-
-def _join(group: np.ndarray, a: int, b: int) -> None:
-    group[_root(group, a)] = _root(group, b)
+    pairs = kd_tree(ends).query_pairs(gap, output_type="ndarray") // 2  # the curves whose ends meet
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (len(curves),) * 2)
+    _, group = connected_components(graph, directed=False)
+    length = np.bincount(group, weights=[curve.length for curve in curves])
+    return [curve for curve, g in zip(curves, group) if length[g] >= min_length or curve.dihedral < keep_dihedral]
 
 
 def distance_to_curves(
