@@ -1,0 +1,147 @@
+"""core.corners: corners found where three faces' edges meet, and the mesh's rounding put back on them."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+import trimesh
+
+from core.corners import SNAP_RADIUS, corners, snap_corners
+from core.curves import Curve, edge_curves
+from core.dual import dual_contour
+from core.extract import sample_grid
+from evaluation.metrics import distance_to_mesh
+from tests.core.test_dual import HIGH, IDENTITY, LOW, ROTATION, box, box_mesh, gradient
+
+JOIN = 0.05
+APEX = np.array([0.1, 0.2, 0.3])
+X, Y, Z = np.eye(3)
+
+
+def edge(direction: np.ndarray, left: np.ndarray, right: np.ndarray, convex: bool = True, start: float = 0.03) -> Curve:
+    """A straight curve leaving APEX along ``direction``, from ``start`` to 0.2 away, sampled every
+    0.005, with the given side normals."""
+    t = np.arange(start, 0.2 + 1e-9, 0.005)[:, None]
+    count = len(t)
+    return Curve(APEX + t * direction, np.tile(left, (count, 1)), np.tile(right, (count, 1)), 90.0, convex)
+
+
+def cube_corner(convex: bool = True) -> list[Curve]:
+    """The three edges of a box's corner at APEX (faces x, y and z = APEX's), each stopping 0.03
+    short of it, as the extraction leaves them."""
+    return [edge(-X, Y, Z, convex), edge(-Y, Z, X, convex), edge(-Z, X, Y, convex)]
+
+
+def test_three_edges_ending_near_one_point_meet_at_their_faces_corner():
+    (corner,) = corners(cube_corner(), JOIN)
+    np.testing.assert_allclose(corner.point, APEX, atol=1e-12)
+    # The planes face so that the solid of a convex corner is inside all three.
+    assert (corner.normals @ (APEX - 0.01) <= corner.offsets).all()
+    assert not (corner.normals @ (APEX + 0.01) <= corner.offsets).any()
+
+
+def test_a_concave_corner_has_its_planes_turned_to_the_empty_side():
+    (corner,) = corners(cube_corner(convex=False), JOIN)
+    np.testing.assert_allclose(corner.point, APEX, atol=1e-12)
+    assert (corner.normals @ (APEX + 0.01) <= corner.offsets).all()
+
+
+def test_no_corner_where_convex_and_concave_edges_meet():
+    curves = cube_corner()
+    curves[0].convex = False
+    assert corners(curves, JOIN) == []
+
+
+def test_no_corner_where_the_ends_lie_farther_apart_than_the_join():
+    curves = [edge(-X, Y, Z, start=0.03), edge(-Y, Z, X, start=0.09), edge(-Z, X, Y, start=0.09)]
+    assert corners(curves, JOIN) == []
+
+
+def test_two_pieces_of_one_edge_are_no_corner():
+    curves = [edge(-X, Y, Z, start=0.03), edge(X, Y, Z, start=0.03)]  # the same line, two faces
+    assert corners(curves, JOIN) == []
+
+
+def test_a_holes_rim_broken_in_two_is_no_corner():
+    # The rim of a hole of radius 0.05 in a plate's top: the wall's normal turns all round, so its
+    # samples fall into several sets of normals, but every edge among them joins the top to the
+    # wall; no three faces meet pairwise.
+    angle = np.linspace(0.2, 2 * np.pi - 0.2, 120)
+    radial = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
+    points = 0.05 * radial
+    pieces = [slice(0, 60), slice(60, 120)]
+    curves = [Curve(points[p], -radial[p], np.tile(Z, (len(angle[p]), 1)), 90.0, True) for p in pieces]
+    assert corners(curves, JOIN) == []
+
+
+def test_loops_have_no_ends():
+    assert corners([], JOIN) == []
+    loop = edge(-X, Y, Z)
+    loop.points = np.vstack([loop.points, loop.points[:1]])
+    loop.left, loop.right = np.vstack([loop.left, loop.left[:1]]), np.vstack([loop.right, loop.right[:1]])
+    assert corners([loop, loop], JOIN) == []
+
+
+def cross(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Each face's (f, 3) unnormalised normal."""
+    corner = mesh.vertices[mesh.faces]
+    return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+
+
+@functools.cache
+def rounded_box(rotation_name: str, radius: float) -> tuple[trimesh.Trimesh, list[Curve], trimesh.Trimesh]:
+    """A box rounded by ``radius`` (as a fit rounds one), dual-contoured with sharpening at 160
+    cells, its curves, and the true box."""
+    rotation = {"aligned": IDENTITY, "rotated": ROTATION}[rotation_name]
+    f = functools.partial(box, rotation=rotation, radius=radius)
+    grid = sample_grid(f, 160, LOW, HIGH)
+    mesh = dual_contour(grid, f, lambda x: (f(x), gradient(f, x)), sharpen=True)
+    return mesh, edge_curves(mesh, 30.0, 0.02, 0.005), box_mesh(rotation)
+
+
+@pytest.mark.parametrize("rotation", ["aligned", "rotated"])
+def test_the_corners_found_on_a_rounded_box_are_its_corners(rotation):
+    # Rounded by 0.03, wider than the sharpening brings back: the curves stop short of the corners.
+    _, curves, truth = rounded_box(rotation, 0.03)
+    found = np.array([corner.point for corner in corners(curves, JOIN)])
+    assert len(found) >= 7  # of 8 (the rotated box's curves miss one)
+    to_truth = np.linalg.norm(found[:, None] - truth.vertices[None], axis=2).min(axis=1)
+    assert to_truth.max() < 0.003
+    assert len(np.unique(np.round(found, 2), axis=0)) == len(found)  # one per corner
+
+
+def test_snapping_puts_a_rounded_boxs_corners_back_on_the_mesh():
+    mesh, curves, truth = rounded_box("aligned", 0.03)
+    before = distance_to_mesh(truth.vertices, mesh.vertices, mesh.faces)
+    snapped, found = snap_corners(mesh, curves, JOIN)
+    after = distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces)
+    assert len(found) == 8
+    assert before.min() > 0.011  # about 0.73 r of the rounding: the sharpening does not put them back
+    assert after.max() < 0.002
+    np.testing.assert_array_equal(snapped.faces, mesh.faces)
+    assert snapped.is_watertight and snapped.is_winding_consistent and snapped.volume > 0
+    # The faces kept their side: none turned over against the unsnapped mesh (whose dual
+    # contouring leaves a few slivers of no area, which have no side).
+    before, after = cross(mesh), cross(snapped)
+    sided = np.linalg.norm(before, axis=1) > 0
+    assert (np.einsum("ij,ij->i", before[sided], after[sided]) > 0).all()
+    # Away from the corners nothing moved.
+    far = np.linalg.norm(mesh.vertices[:, None] - truth.vertices[None], axis=2).min(axis=1) > 0.05
+    np.testing.assert_array_equal(snapped.vertices[far], mesh.vertices[far])
+
+
+def test_a_sharp_boxs_mesh_stays_where_it_is():
+    # Dual contouring of the exact box already has its corners: whatever is found is a true corner,
+    # and only vertices at the corners move, by a quarter of a cell at most (0.0017: a corner's
+    # own vertex onto the exact corner).
+    mesh, curves, truth = rounded_box("aligned", 0.0)
+    snapped, found = snap_corners(mesh, curves, JOIN)
+    for corner in found:
+        assert np.linalg.norm(truth.vertices - corner.point, axis=1).min() < 0.001
+    move = np.linalg.norm(snapped.vertices - mesh.vertices, axis=1)
+    assert move.max() < 0.26 * 1.1 / 160
+    moved = snapped.vertices[move > 0]
+    assert (np.linalg.norm(moved[:, None] - truth.vertices[None], axis=2).min(axis=1) <= SNAP_RADIUS).all()
+    assert distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces).max() < 0.001
