@@ -69,6 +69,46 @@ def snap_corners(mesh: trimesh.Trimesh, curves: list[Curve], join: float) -> tup
     return trimesh.Trimesh(vertices, faces, process=False), found
 
 
+def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spacing: float) -> list[Curve]:
+    """``curves`` carried on to the corners of ``found``: for each corner and each of its three
+    edges, the curve end nearest to it within ``join`` whose side normals are that edge's two faces
+    gains samples up to the corner (every ``spacing`` or less, with the end's side normals). A
+    part's edges meet at its corners, as in its drawing; only the nearest end, since an edge may
+    come out in pieces."""
+    cosine = np.cos(np.radians(SAME_FACE))
+    chosen: dict[tuple[int, int], np.ndarray] = {}  # (curve, end) -> the corner it goes on to
+    for corner in found:
+        nearest: dict[tuple[int, int], tuple[float, int, int]] = {}  # edge (two faces) -> gap, curve, end
+        for index, curve in enumerate(curves):
+            for end in (0, -1):
+                gap = float(np.linalg.norm(curve.points[end] - corner.point))
+                alike = np.abs(corner.normals @ np.stack([curve.left[end], curve.right[end]]).T)  # (3, 2)
+                faces = (int(alike[:, 0].argmax()), int(alike[:, 1].argmax()))
+                if 1e-9 < gap <= join and alike.max(axis=0).min() > cosine and faces[0] != faces[1]:
+                    edge = (min(faces), max(faces))
+                    if edge not in nearest or gap < nearest[edge][0]:
+                        nearest[edge] = (gap, index, end)
+        for _, index, end in nearest.values():
+            chosen[(index, end)] = corner.point
+    extended = []
+    for index, curve in enumerate(curves):
+        points, left, right = curve.points, curve.left, curve.right
+        for end in (0, -1):
+            if (index, end) not in chosen:
+                continue
+            target = chosen[(index, end)]
+            steps = int(np.ceil(np.linalg.norm(target - points[end]) / spacing))
+            added = points[end] + np.linspace(0.0, 1.0, steps + 1)[1:, None] * (target - points[end])
+            if end == 0:
+                points = np.vstack([added[::-1], points])
+                left, right = (np.vstack([np.tile(side[0], (steps, 1)), side]) for side in (left, right))
+            else:
+                points = np.vstack([points, added])
+                left, right = (np.vstack([side, np.tile(side[-1], (steps, 1))]) for side in (left, right))
+        extended.append(Curve(points, left, right, curve.dihedral, curve.convex))
+    return extended
+
+
 def corners(curves: list[Curve], join: float) -> list[Corner]:
     """The corners where curves of ``curves`` end within ``join`` of one another.
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import trimesh
 
-from core.corners import snap_corners
+from core.corners import extend_to_corners, snap_corners
 from core.curves import Curve, distance_to_curves, edge_curves, without_isolated
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
@@ -148,7 +148,8 @@ def reconstruct(
         normals = unit_normals(model, unit, should_cancel=should_cancel)
         curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
         curves = without_isolated(curves, CURVE_JOIN_GAP, CURVE_GROUP_LENGTH, CURVE_KEEP_DIHEDRAL)
-        mesh, _ = snap_corners(mesh, curves, CURVE_JOIN_GAP)
+        mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP)
+        curves = extend_to_corners(curves, corners, CURVE_JOIN_GAP, CURVE_SPACING)
         near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())
         edges = np.flatnonzero(near <= params.edge_width)
         # Δf is reported at the edge points only, so only they pay for it.

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.corners import SNAP_RADIUS, corners, snap_corners
+from core.corners import SNAP_RADIUS, corners, extend_to_corners, snap_corners
 from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
@@ -90,6 +90,19 @@ def cross(mesh: trimesh.Trimesh) -> np.ndarray:
     return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
 
 
+def test_curves_are_carried_on_to_the_corner_their_faces_meet_at():
+    curves = cube_corner()
+    stray = edge(X, Y, -Y, start=0.02)  # ends as near, but its faces are not the corner's
+    extended = extend_to_corners([*curves, stray], corners(curves, JOIN), JOIN, 0.005)
+    for before, after in zip(curves, extended[:3]):
+        np.testing.assert_allclose(after.points[0], APEX, atol=1e-12)  # each started 0.03 short
+        np.testing.assert_array_equal(after.points[-len(before.points) :], before.points)
+        assert np.linalg.norm(np.diff(after.points, axis=0), axis=1).max() <= 0.005 + 1e-12
+        assert len(after.left) == len(after.right) == len(after.points)
+        np.testing.assert_array_equal(after.left[0], before.left[0])
+    np.testing.assert_array_equal(extended[3].points, stray.points)
+
+
 @functools.cache
 def rounded_box(rotation_name: str, radius: float) -> tuple[trimesh.Trimesh, list[Curve], trimesh.Trimesh]:
     """A box rounded by ``radius`` (as a fit rounds one), dual-contoured with sharpening at 160
@@ -130,6 +143,21 @@ def test_snapping_puts_a_rounded_boxs_corners_back_on_the_mesh():
     # Away from the corners nothing moved.
     far = np.linalg.norm(mesh.vertices[:, None] - truth.vertices[None], axis=2).min(axis=1) > 0.05
     np.testing.assert_array_equal(snapped.vertices[far], mesh.vertices[far])
+
+
+def test_a_rounded_boxs_curves_reach_its_corners():
+    # Its twelve edges are 6.0 long; their curves (faces at 90 degrees; the rest are creases of the
+    # rounded corners' own facets) stop short of every corner until carried on.
+    _, curves, truth = rounded_box("aligned", 0.03)
+    extended = extend_to_corners(curves, corners(curves, JOIN), JOIN, 0.005)
+
+    def edges_length(some: list[Curve]) -> float:
+        return sum(curve.length for curve in some if abs(curve.dihedral - 90) < 10)
+
+    assert edges_length(curves) < 5.4 and edges_length(extended) == pytest.approx(6.0, abs=0.01)
+    ends = np.array([end for curve in extended for end in (curve.points[0], curve.points[-1])])
+    at_corners = np.linalg.norm(ends[:, None] - truth.vertices[None], axis=2).min(axis=1) < 0.002
+    assert np.count_nonzero(at_corners) == 24  # three edges at each of the eight corners
 
 
 def test_a_sharp_boxs_mesh_stays_where_it_is():
