@@ -24,6 +24,7 @@ from skimage.measure import marching_cubes
 
 from core.features import Derivatives, SidePlanes, side_planes, unit
 from core.grid import Grid
+from core.intersections import crossing_faces
 
 # Directions whose weight in a patch's QEF is below this fraction of the strongest are left free
 # (truncated pseudo-inverse): along a flat face or an edge the vertex stays at the crossings' mean.
@@ -33,6 +34,7 @@ CELL_SLACK = 0.5
 # How far (in cells) a vertex in the band of a rounded edge may move to reach the sharp edge.
 SHARP_SLACK = 3.0
 _FOLD_PASSES = 4
+_UNCROSS_PASSES = 8  # one vertex per crossing face per pass: a crossing may take two or three
 
 Function = Callable[[np.ndarray], np.ndarray]
 
@@ -79,6 +81,7 @@ def dual_contour(grid: Grid, values_at: Function, derivatives_at: Derivatives, s
     quads, quad_normals = _quads(keys, patch_of_key, cells, axis, lower, values, normals)
     faces, face_normals = _triangulate(quads, quad_normals, placed, moved, values_at)
     placed = _unfold(placed, mean, faces, face_normals, derivatives_at, 0.01 * grid.cell**2)
+    placed = _uncross(placed, mean, faces, moved)
     return trimesh.Trimesh(placed, faces, process=False)
 
 
@@ -221,6 +224,31 @@ def _triangulate(
     first = np.where(along_ac[:, None], quads[:, [0, 1, 2]], quads[:, [0, 1, 3]])
     second = np.where(along_ac[:, None], quads[:, [0, 2, 3]], quads[:, [1, 2, 3]])
     return np.concatenate([first, second]), np.concatenate([quad_normals, quad_normals])
+
+
+def _uncross(vertices: np.ndarray, fallback: np.ndarray, faces: np.ndarray, sharpened: np.ndarray) -> np.ndarray:
+    """Put back at ``fallback`` the ``sharpened`` vertices of faces that cross another face.
+
+    Two sharpened vertices whose side planes cross can push a face through one of the other side
+    (``core.intersections``); only faces with a sharpened vertex can, so only they are tested, and
+    after the first pass only the faces of the vertices put back. Each pass takes back, of each
+    crossing face, only the vertex that moved the farthest: putting back every sharpened vertex of
+    the crossing faces rounded the edges there (l_bracket's edge IoU 0.582 -> 0.577 on one fit,
+    against 0.583 this way; MeshLab's self-intersecting faces 31 -> 4, the cube's 6 -> 0).
+    """
+    vertices = vertices.copy()
+    suspects = np.flatnonzero(sharpened[faces].any(axis=1))
+    for _ in range(_UNCROSS_PASSES):
+        crossing = faces[crossing_faces(vertices, faces, suspects)]
+        # Of each crossing face, the vertex that moved the farthest: the least taken back.
+        moved = np.where(sharpened[crossing], np.linalg.norm(vertices[crossing] - fallback[crossing], axis=2), 0.0)
+        back = np.unique(crossing[np.arange(len(crossing)), moved.argmax(axis=1)])
+        back = back[sharpened[back] & (vertices[back] != fallback[back]).any(axis=1)]
+        if len(back) == 0:
+            break
+        vertices[back] = fallback[back]
+        suspects = np.flatnonzero(np.isin(faces, back).any(axis=1))
+    return vertices
 
 
 def _unfold(

@@ -1,0 +1,81 @@
+"""Self-intersections of a triangle mesh: faces that pass through other faces of the same mesh.
+
+Dual contouring with sharpened vertices can leave a few: where two sharpened vertices near an edge
+take planes that cross, a face of one side pokes through a face of the other (6 to 31 faces on
+the sample parts' fits, found by MeshLab). A mesh that passes through itself is no solid for a
+printer or a Boolean operation, so ``core.dual`` puts such vertices back. Two triangles that share
+no edge cross exactly when an edge of one passes through the other (not in its plane); that
+test, on the pairs of faces near one another, is all this module does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from core.trees import kd_tree
+
+_EPSILON = 1e-12
+# Barycentric and along-the-edge margin: a crossing this near a triangle's boundary or an edge's end
+# is a touch (two faces sharing a vertex meet there, to rounding), not a crossing.
+_MARGIN = 1e-7
+_CHUNK = 8192  # faces of ``among`` tested at a time: a few hundred thousand candidate pairs
+
+
+def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """The faces of ``among`` (indices into ``faces`` (f, 3), on ``vertices`` (v, 3)) that cross
+    another face of the mesh, one sharing no edge with them: a sorted index array.
+
+    Candidates are the pairs whose bounding spheres (about each face's centroid) overlap; each
+    is tested in both directions by ``edges_cross``."""
+    among = np.unique(among)
+    if len(among) == 0 or len(faces) < 2:
+        return np.zeros(0, dtype=np.int64)
+    corners = vertices[faces]
+    centre = corners.mean(axis=1)
+    radius = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
+    tree = kd_tree(centre)
+    chunks = [among[start : start + _CHUNK] for start in range(0, len(among), _CHUNK)]
+    return np.unique(np.concatenate([_crossing(faces, corners, centre, radius, tree, chunk) for chunk in chunks]))
+
+
+def _crossing(
+    faces: np.ndarray, corners: np.ndarray, centre: np.ndarray, radius: np.ndarray, tree: cKDTree, among: np.ndarray
+) -> np.ndarray:
+    """``crossing_faces`` for one chunk of ``among``, given the faces' corners, centroids, bounding
+    radii and a k-d tree of the centroids."""
+    near = tree.query_ball_point(centre[among], radius[among] + radius.max())
+    first = np.repeat(among, [len(n) for n in near])
+    second = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    # Faces sharing an edge meet along it (a fold between them is ``core.dual``'s unfolding's);
+    # faces sharing one vertex may still cross, along a segment from it, which the edge opposite
+    # the vertex shows.
+    shared = (faces[first][:, :, None] == faces[second][:, None, :]).sum(axis=(1, 2))
+    first, second = first[shared < 2], second[shared < 2]
+    close = np.linalg.norm(centre[first] - centre[second], axis=1) <= radius[first] + radius[second]
+    first, second = first[close], second[close]
+    cross = edges_cross(corners[first], corners[second]) | edges_cross(corners[second], corners[first])
+    return first[cross]
+
+
+def edges_cross(edges_of: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """For each pair (row) of triangles (p, 3, 3) each, whether an edge of ``edges_of`` passes
+    through the triangle of ``triangles`` (Möller and Trumbore's segment test; touching at an end
+    or along a face in its plane does not count)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    first, second = b - a, c - a
+    result = np.zeros(len(triangles), dtype=bool)
+    for start, end in ((0, 1), (1, 2), (2, 0)):
+        origin, direction = edges_of[:, start], edges_of[:, end] - edges_of[:, start]
+        p = np.cross(direction, second)
+        determinant = np.einsum("ij,ij->i", first, p)
+        usable = np.abs(determinant) > _EPSILON
+        inverse = 1.0 / np.where(usable, determinant, 1.0)
+        offset = origin - a
+        u = np.einsum("ij,ij->i", offset, p) * inverse
+        q = np.cross(offset, first)
+        v = np.einsum("ij,ij->i", direction, q) * inverse
+        t = np.einsum("ij,ij->i", second, q) * inverse
+        inside = (u > _MARGIN) & (v > _MARGIN) & (u + v < 1 - _MARGIN)
+        result |= usable & inside & (t > _MARGIN) & (t < 1 - _MARGIN)
+    return result

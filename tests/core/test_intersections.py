@@ -1,0 +1,78 @@
+"""core.intersections against a slow, obviously right reference, and core.dual's use of it."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import trimesh
+
+from core.dual import _uncross
+from core.intersections import crossing_faces, edges_cross
+
+
+def reference_edges_cross(edges_of: np.ndarray, triangle: np.ndarray) -> bool:
+    """Whether an edge of the triangle ``edges_of`` (3, 3) passes through ``triangle`` (3, 3):
+    solve origin + t·direction = a + u·(b - a) + v·(c - a) for (t, u, v), one edge at a time."""
+    a, b, c = triangle
+    for start, end in ((0, 1), (1, 2), (2, 0)):
+        origin, direction = edges_of[start], edges_of[end] - edges_of[start]
+        system = np.stack([direction, a - b, a - c], axis=1)
+        if abs(np.linalg.det(system)) < 1e-12:
+            continue
+        t, u, v = np.linalg.solve(system, a - origin)
+        if 1e-7 < t < 1 - 1e-7 and u > 1e-7 and v > 1e-7 and u + v < 1 - 1e-7:
+            return True
+    return False
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_edges_cross_matches_the_reference_on_random_triangles(seed):
+    rng = np.random.default_rng(seed)
+    first, second = rng.uniform(-1, 1, (2, 2000, 3, 3))
+    expected = np.array([reference_edges_cross(p, q) for p, q in zip(first, second)])
+    assert 0.05 < expected.mean() < 0.95  # both kinds are there
+    np.testing.assert_array_equal(edges_cross(first, second), expected)
+
+
+def test_two_triangles_through_each_other_cross_and_touching_ones_do_not():
+    flat = np.array([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]])
+    upright = np.array([[0.0, 0, -0.3], [0, 0, 0.3], [0.2, 0.5, 0]])  # pierces flat's middle
+    touching = np.array([[0.0, 1, 0], [0.0, 2, 1], [0.5, 2, -1]])  # shares flat's top corner
+    above = flat + [0, 0, 0.5]
+    vertices = np.concatenate([flat, upright, touching, above])
+    faces = np.arange(12).reshape(4, 3)
+    np.testing.assert_array_equal(crossing_faces(vertices, faces, np.arange(4)), [0, 1])
+    np.testing.assert_array_equal(crossing_faces(vertices, faces, np.array([2, 3])), [])
+
+
+def test_crossing_faces_matches_the_reference_on_a_crumpled_sphere():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    vertices = sphere.vertices + np.random.default_rng(4).normal(0, 0.15, sphere.vertices.shape)
+    faces = sphere.faces
+    expected = set()
+    for i, j in itertools.combinations(range(len(faces)), 2):
+        if len(set(faces[i]) & set(faces[j])) >= 2:
+            continue  # neighbours across an edge meet along it
+        p, q = vertices[faces[i]], vertices[faces[j]]
+        if reference_edges_cross(p, q) or reference_edges_cross(q, p):
+            expected |= {i, j}
+    assert len(expected) > 10
+    found = crossing_faces(vertices, faces, np.arange(len(faces)))
+    np.testing.assert_array_equal(found, sorted(expected))
+    some = np.arange(0, len(faces), 3)
+    np.testing.assert_array_equal(crossing_faces(vertices, faces, some), sorted(expected & set(some.tolist())))
+
+
+def test_a_sharpened_vertex_pushed_through_the_mesh_is_put_back():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    fallback = sphere.vertices.copy()
+    pushed = fallback.copy()
+    pushed[0] = -1.3 * fallback[0]  # through the far side of the sphere
+    sharpened = np.zeros(len(fallback), dtype=bool)
+    sharpened[0] = True
+    assert len(crossing_faces(pushed, sphere.faces, np.arange(len(sphere.faces)))) > 0
+    np.testing.assert_array_equal(_uncross(pushed, fallback, sphere.faces, sharpened), fallback)
+    # An unsharpened vertex is not the sharpening's to put back.
+    np.testing.assert_array_equal(_uncross(pushed, fallback, sphere.faces, ~sharpened), pushed)
