@@ -72,7 +72,14 @@ def test_a_sharpened_vertex_pushed_through_the_mesh_is_put_back():
     pushed[0] = -1.3 * fallback[0]  # through the far side of the sphere
     sharpened = np.zeros(len(fallback), dtype=bool)
     sharpened[0] = True
-    assert len(crossing_faces(pushed, sphere.faces, np.arange(len(sphere.faces)))) > 0
-    np.testing.assert_array_equal(_uncross(pushed, fallback, sphere.faces, sharpened), fallback)
+    every = np.arange(len(sphere.faces))
+    assert len(crossing_faces(pushed, sphere.faces, every)) > 0
+    uncrossed = _uncross(pushed, fallback, sphere.faces, sharpened)
+    assert len(crossing_faces(uncrossed, sphere.faces, every)) == 0
+    np.testing.assert_array_equal(uncrossed[1:], fallback[1:])
+    # Taken back along its move, by halves, as far as it has to go (here half of it).
+    way, went = fallback[0] - pushed[0], uncrossed[0] - pushed[0]
+    assert np.linalg.norm(np.cross(way, went)) < 1e-12
+    assert 0.5 <= went @ way / (way @ way) <= 1
     # An unsharpened vertex is not the sharpening's to put back.
     np.testing.assert_array_equal(_uncross(pushed, fallback, sphere.faces, ~sharpened), pushed)
