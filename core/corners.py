@@ -80,6 +80,8 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
     for corner in found:
         nearest: dict[tuple[int, int], tuple[float, int, int]] = {}  # edge (two faces) -> gap, curve, end
         for index, curve in enumerate(curves):
+            if np.array_equal(curve.points[0], curve.points[-1]):
+                continue  # a loop has no end
             for end in (0, -1):
                 gap = float(np.linalg.norm(curve.points[end] - corner.point))
                 alike = np.abs(corner.normals @ np.stack([curve.left[end], curve.right[end]]).T)  # (3, 2)

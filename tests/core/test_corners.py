@@ -101,6 +101,11 @@ def test_curves_are_carried_on_to_the_corner_their_faces_meet_at():
         assert len(after.left) == len(after.right) == len(after.points)
         np.testing.assert_array_equal(after.left[0], before.left[0])
     np.testing.assert_array_equal(extended[3].points, stray.points)
+    loop = edge(-X, Y, Z)
+    loop.points = np.vstack([loop.points, loop.points[:1]])
+    loop.left, loop.right = np.vstack([loop.left, loop.left[:1]]), np.vstack([loop.right, loop.right[:1]])
+    (kept,) = extend_to_corners([loop], corners(curves, JOIN), JOIN, 0.005)
+    np.testing.assert_array_equal(kept.points, loop.points)
 
 
 @functools.cache

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.intersections import crossing_faces
 from core.params import FitParams
 from evaluation.metrics import edge_chamfer
 from evaluation.sample_data import evaluate_shape
@@ -32,3 +33,6 @@ def test_shared_cube_with_the_defaults_meets_the_fitting_issue(shared_data):
     assert scores["hausdorff_exact"] < 0.014 and scores["edge_iou"] > 0.55, scores
     curve_points = np.concatenate([curve.points for curve in result.curves])
     assert edge_chamfer(curve_points, np.load(shared_data / "cube" / "edges_gt.npy")) < 0.005
+    # No face passes through another (MeshLab found 17 before core.dual took such vertices back).
+    faces = np.asarray(result.mesh.faces)
+    assert len(crossing_faces(np.asarray(result.mesh.vertices), faces, np.arange(len(faces)))) == 0
