@@ -47,13 +47,14 @@ def _crossing(
     near = tree.query_ball_point(centre[among], radius[among] + radius.max())
     first = np.repeat(among, [len(n) for n in near])
     second = np.concatenate([np.asarray(n, dtype=np.int64) for n in near])
+    gap = centre[first] - centre[second]
+    close = np.einsum("ij,ij->i", gap, gap) <= (radius[first] + radius[second]) ** 2
+    first, second = first[close], second[close]
     # Faces sharing an edge meet along it (a fold between them is ``core.dual``'s unfolding's);
     # faces sharing one vertex may still cross, along a segment from it, which the edge opposite
     # the vertex shows.
     shared = (faces[first][:, :, None] == faces[second][:, None, :]).sum(axis=(1, 2))
     first, second = first[shared < 2], second[shared < 2]
-    close = np.linalg.norm(centre[first] - centre[second], axis=1) <= radius[first] + radius[second]
-    first, second = first[close], second[close]
     cross = edges_cross(corners[first], corners[second]) | edges_cross(corners[second], corners[first])
     return first[cross]
 
