@@ -226,10 +226,5 @@ def _onto_faces(point: np.ndarray, corner: Corner) -> np.ndarray:
     for i, j in ((0, 1), (0, 2), (1, 2)):
         along = _unit(np.cross(normals[i], normals[j]))
         candidates.append(apex + ((point - apex) @ along) * along)
-    best = apex
-    for candidate in candidates:
-        if (normals @ candidate <= offsets + _INSIDE).all() and np.linalg.norm(candidate - point) < np.linalg.norm(
-            best - point
-        ):
-            best = candidate
-    return best
+    inside = [candidate for candidate in candidates if (normals @ candidate <= offsets + _INSIDE).all()]
+    return min([apex, *inside], key=lambda candidate: float(np.linalg.norm(candidate - point)))

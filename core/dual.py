@@ -227,7 +227,7 @@ def _triangulate(
 
 
 def _uncross(vertices: np.ndarray, fallback: np.ndarray, faces: np.ndarray, sharpened: np.ndarray) -> np.ndarray:
-    """Put back at ``fallback`` the ``sharpened`` vertices of faces that cross another face.
+    """Take the ``sharpened`` vertices of faces that cross another face back towards ``fallback``.
 
     Two sharpened vertices whose side planes cross can push a face through one of the other side
     (``core.intersections``); only faces with a sharpened vertex can, so only they are tested, and

@@ -1,9 +1,9 @@
 """Self-intersections of a triangle mesh: faces that pass through other faces of the same mesh.
 
 Dual contouring with sharpened vertices can leave a few: where two sharpened vertices near an edge
-take planes that cross, a face of one side pokes through a face of the other (6 to 31 faces on
+take planes that cross, a face of one side pokes through a face of the other (5 to 97 faces on
 the sample parts' fits, found by MeshLab). A mesh that passes through itself is no solid for a
-printer or a Boolean operation, so ``core.dual`` puts such vertices back. Two triangles that share
+printer or a Boolean operation, so ``core.dual`` takes such vertices back. Two triangles that share
 no edge cross exactly when an edge of one passes through the other (not in its plane); that
 test, on the pairs of faces near one another, is all this module does.
 """
