@@ -155,7 +155,7 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
     face = np.full(len(normals), -1)
     for index, members in enumerate(_faces(normals)[:3]):
         face[members] = index
-    if face.max() < 2:
+    if face.max(initial=-1) < 2:  # fewer than three faces (or no samples near the group's centre)
         return None
     sides = np.sort(np.stack([face[: len(points)], face[len(points) :]], axis=1), axis=1)
     on_edge = np.zeros(len(points), dtype=bool)

@@ -76,6 +76,17 @@ def test_a_holes_rim_broken_in_two_is_no_corner():
     assert corners(curves, JOIN) == []
 
 
+def test_ends_chained_round_a_ring_wider_than_the_reach_are_no_corner():
+    # Sixteen short curves whose ends lie 0.04 apart round a ring of radius 0.1: one group of ends
+    # whose centre (the ring's) is farther than CORNER_REACH from every sample.
+    curves = []
+    for angle in np.arange(16) * 2 * np.pi / 16:
+        out = np.array([np.cos(angle), np.sin(angle), 0.0])
+        points = np.outer([0.1, 0.105, 0.11], out)
+        curves.append(Curve(points, np.tile(Z, (3, 1)), np.tile(out, (3, 1)), 90.0, True))
+    assert corners(curves, JOIN) == []
+
+
 def test_loops_have_no_ends():
     assert corners([], JOIN) == []
     loop = edge(-X, Y, Z)
