@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.sparse import coo_matrix, csr_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse import csr_matrix
 
-from core.curves import Curve
+from core.curves import Curve, curve_ends, linked
+from core.features import unit
 from core.trees import kd_tree
 
 CORNER_REACH = 0.08  # unit frame: the curve samples read around the curves' ends that meet
@@ -80,8 +80,8 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
     for corner in found:
         nearest: dict[tuple[int, int], tuple[float, int, int]] = {}  # edge (two faces) -> gap, curve, end
         for index, curve in enumerate(curves):
-            if np.array_equal(curve.points[0], curve.points[-1]):
-                continue  # a loop has no end
+            if curve.closed:
+                continue
             for end in (0, -1):
                 gap = float(np.linalg.norm(curve.points[end] - corner.point))
                 alike = np.abs(corner.normals @ np.stack([curve.left[end], curve.right[end]]).T)  # (3, 2)
@@ -122,13 +122,11 @@ def corners(curves: list[Curve], join: float) -> list[Corner]:
     corner lies within ``join`` of the group's centre. Closed curves (loops) have no ends; a corner
     where convex and concave edges meet (a saddle) is left out.
     """
-    open_curves = [curve for curve in curves if not np.array_equal(curve.points[0], curve.points[-1])]
+    open_curves = [curve for curve in curves if not curve.closed]
     if len(open_curves) < 2:
         return []
-    ends = np.array([[curve.points[0], curve.points[-1]] for curve in open_curves]).reshape(-1, 3)
-    pairs = kd_tree(ends).query_pairs(join, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (len(ends),) * 2)
-    _, group = connected_components(graph, directed=False)
+    ends = curve_ends(open_curves)
+    group = linked(kd_tree(ends).query_pairs(join, output_type="ndarray"), len(ends))
     samples = np.concatenate([curve.points for curve in curves])
     left = np.concatenate([curve.left for curve in curves])
     right = np.concatenate([curve.right for curve in curves])
@@ -171,7 +169,7 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
     if convex[on_edge].min() != convex[on_edge].max():
         return None
     on = np.concatenate([points, points])
-    planes = np.array([_unit(normals[face == index].mean(axis=0)) for index in range(3)])
+    planes = unit(np.array([normals[face == index].mean(axis=0) for index in range(3)]))
     if abs(np.linalg.det(planes)) < MIN_DETERMINANT:
         return None
     offsets = np.array([np.median(on[face == index] @ planes[index]) for index in range(3)])
@@ -202,10 +200,6 @@ def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
 
 
-def _unit(vector: np.ndarray) -> np.ndarray:
-    return vector / np.linalg.norm(vector)
-
-
 def _move(vertices: np.ndarray, around: np.ndarray, vertex: int, target: np.ndarray) -> bool:
     """Put ``vertex`` at ``target`` in ``vertices`` (in place) unless one of its faces ``around``
     ((f, 3)) would turn over; whether it moved."""
@@ -224,7 +218,7 @@ def _onto_faces(point: np.ndarray, corner: Corner) -> np.ndarray:
     normals, offsets, apex = corner.normals, corner.offsets, corner.point
     candidates = [point - (normals[i] @ point - offsets[i]) * normals[i] for i in range(3)]
     for i, j in ((0, 1), (0, 2), (1, 2)):
-        along = _unit(np.cross(normals[i], normals[j]))
+        along = unit(np.cross(normals[i], normals[j])[None])[0]
         candidates.append(apex + ((point - apex) @ along) * along)
     inside = [candidate for candidate in candidates if (normals @ candidate <= offsets + _INSIDE).all()]
     return min([apex, *inside], key=lambda candidate: float(np.linalg.norm(candidate - point)))

@@ -39,6 +39,11 @@ class Curve:
     def length(self) -> float:
         return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
 
+    @property
+    def closed(self) -> bool:
+        """A loop (a hole's rim): its first and last points are the same, and it has no ends."""
+        return bool(np.array_equal(self.points[0], self.points[-1]))
+
 
 def edge_curves(mesh: trimesh.Trimesh, angle: float, min_length: float, spacing: float) -> list[Curve]:
     """The chains of mesh edges whose faces' normals differ by more than ``angle`` degrees,
@@ -90,12 +95,22 @@ def without_isolated(curves: list[Curve], gap: float, min_length: float, keep_di
     """
     if not curves:
         return []
-    ends = np.array([[curve.points[0], curve.points[-1]] for curve in curves]).reshape(-1, 3)
-    pairs = kd_tree(ends).query_pairs(gap, output_type="ndarray") // 2  # the curves whose ends meet
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (len(curves),) * 2)
-    _, group = connected_components(graph, directed=False)
+    pairs = kd_tree(curve_ends(curves)).query_pairs(gap, output_type="ndarray") // 2  # the curves whose ends meet
+    group = linked(pairs, len(curves))
     length = np.bincount(group, weights=[curve.length for curve in curves])
     return [curve for curve, g in zip(curves, group) if length[g] >= min_length or curve.dihedral < keep_dihedral]
+
+
+def curve_ends(curves: list[Curve]) -> np.ndarray:
+    """The first and last points of ``curves``, (2k, 3): curve i's at rows 2i and 2i + 1."""
+    return np.array([[curve.points[0], curve.points[-1]] for curve in curves]).reshape(-1, 3)
+
+
+def linked(pairs: np.ndarray, count: int) -> np.ndarray:
+    """The group (count,) of each of ``count`` items, two items of a row of ``pairs`` (p, 2) being
+    in one group (transitively): the connected components of that graph."""
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (count, count))
+    return connected_components(graph, directed=False)[1]
 
 
 def distance_to_curves(

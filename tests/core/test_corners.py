@@ -28,6 +28,13 @@ def edge(direction: np.ndarray, left: np.ndarray, right: np.ndarray, convex: boo
     return Curve(APEX + t * direction, np.tile(left, (count, 1)), np.tile(right, (count, 1)), 90.0, convex)
 
 
+def closed(curve: Curve) -> Curve:
+    """``curve`` with its first sample repeated at its end: a loop."""
+    return Curve(
+        *(np.vstack([a, a[:1]]) for a in (curve.points, curve.left, curve.right)), curve.dihedral, curve.convex
+    )
+
+
 def cube_corner(convex: bool = True) -> list[Curve]:
     """The three edges of a box's corner at APEX (faces x, y and z = APEX's), each stopping 0.03
     short of it, as the extraction leaves them."""
@@ -89,9 +96,7 @@ def test_ends_chained_round_a_ring_wider_than_the_reach_are_no_corner():
 
 def test_loops_have_no_ends():
     assert corners([], JOIN) == []
-    loop = edge(-X, Y, Z)
-    loop.points = np.vstack([loop.points, loop.points[:1]])
-    loop.left, loop.right = np.vstack([loop.left, loop.left[:1]]), np.vstack([loop.right, loop.right[:1]])
+    loop = closed(edge(-X, Y, Z))
     assert corners([loop, loop], JOIN) == []
 
 
@@ -112,9 +117,7 @@ def test_curves_are_carried_on_to_the_corner_their_faces_meet_at():
         assert len(after.left) == len(after.right) == len(after.points)
         np.testing.assert_array_equal(after.left[0], before.left[0])
     np.testing.assert_array_equal(extended[3].points, stray.points)
-    loop = edge(-X, Y, Z)
-    loop.points = np.vstack([loop.points, loop.points[:1]])
-    loop.left, loop.right = np.vstack([loop.left, loop.left[:1]]), np.vstack([loop.right, loop.right[:1]])
+    loop = closed(edge(-X, Y, Z))
     (kept,) = extend_to_corners([loop], corners(curves, JOIN), JOIN, 0.005)
     np.testing.assert_array_equal(kept.points, loop.points)
 
