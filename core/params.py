@@ -66,10 +66,13 @@ class FitParams(BaseModel):
         description="sharp extraction: faces whose normals differ by more degrees meet at an edge curve",
     )
     edge_width: float = Field(
-        0.013,
+        0.0125,
         gt=0,
         le=0.2,
-        description="sharp extraction: input points this near an edge curve are edge points (normalised frame)",
+        description=(
+            "sharp extraction: input points this near an edge curve, along their face, are edge points"
+            " (normalised frame)"
+        ),
     )
     resolution: int = Field(160, ge=32, le=512, description="marching-cubes grid cells along the largest extent")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")

@@ -240,19 +240,84 @@ def test_the_curves_of_a_box_are_its_twelve_edges():
         assert np.linalg.norm(np.diff(curve.points, axis=0), axis=1).max() <= 0.005 + 1e-9
 
 
+def _distance_along_faces_by_hand(points: np.ndarray, curves: list, within: float) -> np.ndarray:
+    """distance_to_curves point by point: the nearest of all dense samples of all curves, its
+    segment's direction and faces, the offset less its parts along the direction (unless it points
+    past the curve's end from its end) and off the nearer face; inf beyond ``within`` along the
+    face or twice ``within`` away; nan where two samples are nearest (a corner where curves end
+    together), which the two ways may break differently."""
+    samples, directions, lefts, rights, ends = [], [], [], [], []
+    for curve in curves:
+        dense, step = _along(curve.points, 0.001)
+        for i, (sample, k) in enumerate(zip(dense, step)):
+            segment = curve.points[k + 1] - curve.points[k]
+            samples.append(sample)
+            directions.append(segment / np.linalg.norm(segment))
+            lefts.append(curve.left[k])
+            rights.append(curve.right[k])
+            ends.append(-1 if i == 0 else 1 if i == len(dense) - 1 else 0)
+    samples = np.array(samples)
+    distances = []
+    for point in points:
+        away = np.linalg.norm(samples - point, axis=1)
+        j, second = np.argsort(away)[:2]
+        offset = point - samples[j]
+        if away[second] - away[j] < 1e-9:
+            distances.append(np.nan)
+            continue
+        if np.linalg.norm(offset) > 2 * within:
+            distances.append(np.inf)
+            continue
+        along_curve = np.dot(offset, directions[j])
+        if along_curve * ends[j] <= 0:
+            offset = offset - along_curve * directions[j]
+        off_face = min(abs(np.dot(offset, lefts[j])), abs(np.dot(offset, rights[j])))
+        along = np.sqrt(max(np.dot(offset, offset) - off_face**2, 0.0))
+        distances.append(along if along <= within else np.inf)
+    return np.array(distances)
+
+
 @pytest.mark.parametrize("workers", [1, 2])
-def test_distance_to_curves_is_the_distance_to_the_box_edges_up_to_the_bound(workers):
+def test_distance_to_curves_is_the_distance_along_the_nearer_face_up_to_the_bound(workers):
     curves = edge_curves(contour("box"), 30.0, 0.02, 0.005)
-    points = np.random.default_rng(5).uniform(-0.4, 0.4, (4000, 3))
-    dense = np.concatenate([_along(c.points, 0.001)[0] for c in curves])
-    brute = np.linalg.norm(points[:, None] - dense[None], axis=2).min(axis=1)
-    assert brute.min() < 0.02 < brute.max()
-    np.testing.assert_allclose(distance_to_curves(points, curves, 0.005), brute, atol=1e-12)
-    bounded = distance_to_curves(points, curves, 0.005, within=0.05, workers=workers)
-    near = brute <= 0.05
-    np.testing.assert_allclose(bounded[near], brute[near], atol=1e-12)
-    assert np.isinf(bounded[~near]).all()
+    points = np.random.default_rng(5).uniform(-0.35, 0.35, (1500, 3))
+    by_hand = _distance_along_faces_by_hand(points, curves, 0.05)
+    untied = ~np.isnan(by_hand)
+    assert untied.mean() > 0.95
+    assert 0.1 < np.isfinite(by_hand).mean() < 0.8
+    bounded = distance_to_curves(points, curves, 0.005, 0.05, workers)
+    np.testing.assert_allclose(bounded[untied], by_hand[untied], atol=1e-12)
+    unbounded = distance_to_curves(points, curves, 0.005)
+    near = np.isfinite(by_hand)
+    np.testing.assert_allclose(unbounded[near], by_hand[near], atol=1e-12)
+    assert np.isfinite(unbounded).all()
     assert np.isinf(distance_to_curves(points, [], 0.005)).all()
+
+
+def test_a_point_moved_off_its_face_is_as_far_from_the_edge_as_where_it_was_sampled():
+    """Points on the box's faces at a known distance from an edge (away from the corners), moved
+    off their face by up to 0.008 (noise of the sample data's size): their distance along the
+    face is the one they were sampled at, where the straight distance to the edge is not. A point
+    moved off its face by more than it lies from the edge is nearer the other face's plane, and is
+    read on that face: as far from the edge as it was moved."""
+    curves = edge_curves(contour("box"), 30.0, 0.02, 0.005)
+    rng = np.random.default_rng(9)
+    count = 2000
+    along_edge = rng.uniform(-0.5, 0.5, count) * HALF[2]  # edges along z, the middle half
+    sampled_at = rng.uniform(0.0, 0.03, count)
+    off = rng.uniform(-0.008, 0.008, count)
+    on_x_face = rng.random(count) < 0.5
+    # The edge x = HALF[0], y = HALF[1]: on the face x = HALF[0], y runs in from the edge; and the other way round.
+    x = np.where(on_x_face, HALF[0] + off, HALF[0] - sampled_at)
+    y = np.where(on_x_face, HALF[1] - sampled_at, HALF[1] + off)
+    points = np.stack([x, y, along_edge], axis=1)
+    distance = distance_to_curves(points, curves, 0.005, 0.05)
+    on_its_face = np.abs(off) < sampled_at
+    assert 0.6 < on_its_face.mean() < 0.9
+    np.testing.assert_allclose(distance[on_its_face], sampled_at[on_its_face], atol=0.1 * CELL)
+    np.testing.assert_allclose(distance, np.maximum(sampled_at, np.abs(off)), atol=0.1 * CELL)
+    straight = np.hypot(sampled_at, off)
+    assert np.abs(straight - sampled_at)[on_its_face].max() > 0.1 * CELL  # the straight distance would fail
 
 
 def test_the_curves_of_a_wedge_follow_its_nine_edges_including_the_acute_ridge():
