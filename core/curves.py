@@ -17,6 +17,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from core.features import unit
 from core.trees import kd_tree
 
 _SMOOTHING_PASSES = 3
@@ -157,8 +158,7 @@ def _dense(curve: Curve, spacing: float) -> tuple[np.ndarray, np.ndarray, np.nda
     there (m, 3) each, its unit direction there (m, 3), and which way along it the curve ends there
     (m,): -1 at the first sample, 1 at the last, 0 elsewhere and all along a loop."""
     samples, step = _along(curve.points, spacing)
-    directions = np.diff(curve.points, axis=0)
-    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
+    directions = unit(np.diff(curve.points, axis=0))
     beyond = np.zeros(len(samples))
     if not curve.closed:
         beyond[0], beyond[-1] = -1.0, 1.0
