@@ -5,7 +5,9 @@ take planes that cross, a face of one side pokes through a face of the other (5 
 the sample parts' fits, found by MeshLab). A mesh that passes through itself is no solid for a
 printer or a Boolean operation, so ``core.dual`` takes such vertices back. Two triangles that share
 no edge cross exactly when an edge of one passes through the other (not in its plane); that
-test, on the pairs of faces near one another, is all this module does.
+test, on the pairs of faces near one another, is all this module does. Faces that share no vertex
+count as crossing when they merely touch: the 8 decimals of an OBJ file turned such contacts into
+crossings on three of twelve sample fits (MeshLab's check of the written file, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -19,6 +21,11 @@ _EPSILON = 1e-12
 # Barycentric and along-the-edge margin: a crossing this near a triangle's boundary or an edge's end
 # is a touch (two faces sharing a vertex meet there, to rounding), not a crossing.
 _MARGIN = 1e-7
+# Faces that share no vertex must not touch either: a vertex placed exactly on another face's edge
+# (two sharpened vertices on one edge line) becomes a crossing once the coordinates are rounded,
+# as a mesh file does (8 decimals in OBJ). Contact this near (barycentric, relative to the faces'
+# size: about 6e-8 for a cell of 0.006) counts.
+_TOUCH = 1e-5
 _CHUNK = 8192  # faces of ``among`` tested at a time: a few hundred thousand candidate pairs
 
 
@@ -54,15 +61,18 @@ def _crossing(
     # faces sharing one vertex may still cross, along a segment from it, which the edge opposite
     # the vertex shows.
     shared = (faces[first][:, :, None] == faces[second][:, None, :]).sum(axis=(1, 2))
-    first, second = first[shared < 2], second[shared < 2]
-    cross = edges_cross(corners[first], corners[second]) | edges_cross(corners[second], corners[first])
+    first, second, shared = first[shared < 2], second[shared < 2], shared[shared < 2]
+    margin = np.where(shared == 0, -_TOUCH, _MARGIN)
+    cross = edges_cross(corners[first], corners[second], margin) | edges_cross(corners[second], corners[first], margin)
     return first[cross]
 
 
-def edges_cross(edges_of: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def edges_cross(edges_of: np.ndarray, triangles: np.ndarray, margin: np.ndarray | float = _MARGIN) -> np.ndarray:
     """For each pair (row) of triangles (p, 3, 3) each, whether an edge of ``edges_of`` passes
-    through the triangle of ``triangles`` (Möller and Trumbore's segment test; touching at an end
-    or along a face in its plane does not count)."""
+    through the triangle of ``triangles`` (Möller and Trumbore's segment test): by more than
+    ``margin`` (barycentric and along the edge; scalar or (p,)) inside both. A positive margin
+    leaves out touching at an end or a boundary, a negative one counts contact that near; an edge
+    in the triangle's plane never counts."""
     a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
     first, second = b - a, c - a
     result = np.zeros(len(triangles), dtype=bool)
@@ -77,6 +87,6 @@ def edges_cross(edges_of: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         q = np.cross(offset, first)
         v = np.einsum("ij,ij->i", direction, q) * inverse
         t = np.einsum("ij,ij->i", second, q) * inverse
-        inside = (u > _MARGIN) & (v > _MARGIN) & (u + v < 1 - _MARGIN)
-        result |= usable & inside & (t > _MARGIN) & (t < 1 - _MARGIN)
+        inside = (u > margin) & (v > margin) & (u + v < 1 - margin)
+        result |= usable & inside & (t > margin) & (t < 1 - margin)
     return result

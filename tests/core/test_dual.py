@@ -18,6 +18,7 @@ from core import features
 from core.curves import _along, distance_to_curves, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
+from core.intersections import crossing_faces
 from evaluation.metrics import distance_to_mesh, surface_distances
 
 RESOLUTION = 64
@@ -193,6 +194,21 @@ def test_sharpening_brings_the_mesh_back_to_the_corners_a_fit_rounds(rotation):
     truth = box_mesh(rotation)
     assert distance_to_mesh(truth.vertices, mesh.vertices, mesh.faces).max() < 0.6 * 0.73 * 0.02
     assert mesh.is_watertight and mesh.is_winding_consistent
+
+
+@pytest.mark.parametrize(
+    "rotation, radius", [(IDENTITY, 0.01), (ROTATION, 0.02), (ROTATION, 0.03)], ids=["aligned", "rotated", "rounder"]
+)
+def test_a_sharpened_mesh_does_not_cross_itself_once_written_to_eight_decimals(rotation, radius):
+    # Sharpened vertices on one edge line can lie exactly on another face's edge; a mesh file's
+    # rounding (OBJ: 8 decimals) then pushed 4, 16 and 7 faces through others. Contact between
+    # faces that share no vertex now counts as crossing (core.intersections), and is parted.
+    rounded = functools.partial(box, rotation=rotation, radius=radius)
+    grid = sample_grid(rounded, 160, LOW, HIGH)
+    mesh = dual_contour(grid, rounded, lambda x: (rounded(x), gradient(rounded, x)), sharpen=True)
+    every = np.arange(len(mesh.faces))
+    assert len(crossing_faces(np.round(mesh.vertices, 8), mesh.faces, every)) == 0
+    assert len(crossing_faces(mesh.vertices.astype(np.float32).astype(np.float64), mesh.faces, every)) == 0
 
 
 @pytest.mark.parametrize("radius, edges", [(0.015, True), (0.03, True), (0.04, False), (0.05, False)])

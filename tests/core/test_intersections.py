@@ -36,15 +36,29 @@ def test_edges_cross_matches_the_reference_on_random_triangles(seed):
     np.testing.assert_array_equal(edges_cross(first, second), expected)
 
 
-def test_two_triangles_through_each_other_cross_and_touching_ones_do_not():
+def test_two_triangles_through_each_other_cross_and_ones_sharing_a_vertex_do_not():
     flat = np.array([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]])
     upright = np.array([[0.0, 0, -0.3], [0, 0, 0.3], [0.2, 0.5, 0]])  # pierces flat's middle
-    touching = np.array([[0.0, 1, 0], [0.0, 2, 1], [0.5, 2, -1]])  # shares flat's top corner
+    hinged = np.array([[0.0, 2, 1], [0.5, 2, -1]])  # with flat's top corner: meets flat only there
     above = flat + [0, 0, 0.5]
-    vertices = np.concatenate([flat, upright, touching, above])
-    faces = np.arange(12).reshape(4, 3)
+    vertices = np.concatenate([flat, upright, hinged, above])
+    faces = np.array([[0, 1, 2], [3, 4, 5], [2, 6, 7], [8, 9, 10]])
     np.testing.assert_array_equal(crossing_faces(vertices, faces, np.arange(4)), [0, 1])
     np.testing.assert_array_equal(crossing_faces(vertices, faces, np.array([2, 3])), [])
+
+
+def test_faces_sharing_no_vertex_may_not_touch_even_to_rounding():
+    """A vertex on another face's edge (two sharpened vertices on one edge line) pokes through once
+    a mesh file rounds it, so contact counts as crossing, up to the rounding of 8 decimals."""
+    flat = np.array([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]])
+    foot = np.array([[0.3, -1.0, 0.0], [0.3, -1.5, 0.5], [0.5, -1.5, 0.6]])  # its corner on flat's edge
+    for lift, touches in ((0.0, True), (-2e-8, True), (2e-8, True), (-1e-3, False), (1e-3, False)):
+        vertices = np.concatenate([flat, foot + [0, 0, lift]])
+        found = crossing_faces(vertices, np.arange(6).reshape(2, 3), np.arange(2))
+        np.testing.assert_array_equal(found, [0, 1] if touches else [], err_msg=f"foot lifted by {lift}")
+    # The same contact through a shared vertex is the mesh's own joint.
+    shared = np.concatenate([flat, foot[1:]])
+    assert len(crossing_faces(shared, np.array([[0, 1, 2], [1, 3, 4]]), np.arange(2))) == 0
 
 
 def test_crossing_faces_matches_the_reference_on_a_crumpled_sphere():
