@@ -20,6 +20,7 @@ from scipy.sparse import csr_matrix
 
 from core.curves import Curve, curve_ends, linked
 from core.features import unit
+from core.intersections import crossing_faces
 from core.trees import kd_tree
 
 CORNER_REACH = 0.08  # unit frame: the curve samples read around the curves' ends that meet
@@ -29,6 +30,7 @@ MIN_SUPPORT = 3  # samples of each of the corner's three edges (a hole's rim has
 MIN_DETERMINANT = 0.3  # |det| of the three faces' normals: far from a fan of nearly parallel faces
 SNAP_RADIUS = 0.02  # unit frame: mesh vertices this near a corner and inside its faces go onto them
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
+_UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
 _INSIDE = 1e-6  # unit frame: how far inside a plane counts as inside
 
 
@@ -49,7 +51,9 @@ def snap_corners(mesh: trimesh.Trimesh, curves: list[Curve], join: float) -> tup
     For each corner the nearest vertex within ``join`` goes onto its point (or the next nearest,
     of ``_CANDIDATES``, where that would turn a face over); then each vertex within
     ``SNAP_RADIUS`` that lies inside all three faces' planes (the rounding) goes onto the nearest
-    point of the faces, unless a face of it would turn over. Returns a new mesh, same faces."""
+    point of the faces, unless a face of it would turn over. A moved vertex of a face that then
+    crosses or touches another (``core.intersections``) goes back where it was: on featuretype
+    two faces did. Returns a new mesh, same faces."""
     found = corners(curves, join)
     if not found:
         return mesh, found
@@ -66,7 +70,23 @@ def snap_corners(mesh: trimesh.Trimesh, curves: list[Curve], join: float) -> tup
         for vertex in around[np.argsort(np.linalg.norm(vertices[around] - corner.point, axis=1))]:
             if (corner.normals @ vertices[vertex] < corner.offsets - _INSIDE).all():
                 _move(vertices, faces[faces_of[vertex].indices], vertex, _onto_faces(vertices[vertex], corner))
-    return trimesh.Trimesh(vertices, faces, process=False), found
+    return trimesh.Trimesh(_uncrossed(vertices, mesh.vertices, faces), faces, process=False), found
+
+
+def _uncrossed(vertices: np.ndarray, before: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``vertices`` (v, 3) with the moved ones (those not at ``before``) of faces that cross
+    another face put back, until none does (``before``, as ``core.dual`` leaves it, crosses
+    nowhere, so putting back every moved vertex of a crossing face ends it)."""
+    vertices = vertices.copy()
+    moved = np.flatnonzero((vertices != before).any(axis=1))
+    for _ in range(_UNCROSS_PASSES):
+        crossing = crossing_faces(vertices, faces, np.flatnonzero(np.isin(faces, moved).any(axis=1)))
+        back = np.intersect1d(faces[crossing], moved)
+        if len(back) == 0:
+            break
+        vertices[back] = before[back]
+        moved = np.setdiff1d(moved, back)
+    return vertices
 
 
 def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spacing: float) -> list[Curve]:
