@@ -1,8 +1,8 @@
 """The mesh in the formats edgerecon offers: Wavefront OBJ, which jobs store, and PLY, STL and glTF
 binary, made from it by trimesh's exporters.
 
-One place for all of them, used by ``edgerecon fit --format`` (from the fitted mesh) and by the API
-(from a job's stored OBJ, on request). No torch here: the API imports it.
+One place for all of them, used by ``edgerecon fit --format`` and by the API (on request), both
+from the OBJ, so that a fit's files are the same either way. No torch here: the API imports it.
 """
 
 from __future__ import annotations

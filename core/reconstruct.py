@@ -7,7 +7,7 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,7 @@ from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
 from core.fit import fit
 from core.frame import Frame
-from core.mesh_formats import mesh_file
+from core.mesh_formats import convert_obj, mesh_file
 from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, PREVIEW_POINTS, write_atomically
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
@@ -105,9 +105,13 @@ class Reconstruction:
 
     def outputs(self, names: Iterable[str] = OUTPUT_NAMES) -> dict[str, bytes]:
         """The output files ``names`` by name: those a job stores (``core.outputs.OUTPUT_NAMES``) by
-        default; ``mesh.<format>`` for any of ``core.mesh_formats.MESH_FORMATS``."""
+        default; ``mesh.<format>`` for any of ``core.mesh_formats.MESH_FORMATS``, each made from
+        the OBJ as the API makes it from a job's stored OBJ, so that a fit's files are the same
+        both ways (the OBJ's 8 decimals, not the unit frame's exact coplanar vertices, which
+        MeshLab's self-intersection check misreads)."""
+        obj = cache(self.mesh_obj)
         makers = {"normals.json": self.normals_json, "edges.json": self.edges_json, "preview.json": self.preview_json}
-        makers.update({f"mesh.{fmt}": partial(mesh_file, self.mesh, fmt) for fmt in MESH_FORMATS})
+        makers.update({f"mesh.{fmt}": partial(lambda fmt: convert_obj(obj(), fmt), fmt) for fmt in MESH_FORMATS})
         unknown = [name for name in names if name not in makers]
         if unknown:
             raise ValueError(f"no output called {', '.join(unknown)}")

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.mesh_formats import convert_obj
 from core.ply import read_points
 from evaluation.shapes import write_ply
 from tests.helpers import EXAMPLE_CLOUD as EXAMPLE
@@ -207,6 +208,10 @@ def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_pa
         mesh = trimesh.load(tmp_path / "out" / f"mesh.{fmt}", force="mesh")  # STL stores triangles: merged here
         assert (len(mesh.vertices), len(mesh.faces)) == (len(obj.vertices), len(obj.faces)), fmt
         np.testing.assert_allclose(mesh.bounds, obj.bounds, atol=1e-5)
+        # The files the API serves for the same job: made from the stored OBJ.
+        assert (tmp_path / "out" / f"mesh.{fmt}").read_bytes() == convert_obj(
+            (tmp_path / "out" / "mesh.obj").read_bytes(), fmt
+        ), fmt
 
 
 def test_an_unknown_format_is_refused_before_anything_runs(tmp_path):
