@@ -110,8 +110,12 @@ class Reconstruction:
         both ways (the OBJ's 8 decimals, not the unit frame's exact coplanar vertices, which
         MeshLab's self-intersection check misreads)."""
         obj = cache(self.mesh_obj)
+
+        def mesh_in(fmt: str) -> bytes:
+            return convert_obj(obj(), fmt)
+
         makers = {"normals.json": self.normals_json, "edges.json": self.edges_json, "preview.json": self.preview_json}
-        makers.update({f"mesh.{fmt}": partial(lambda fmt: convert_obj(obj(), fmt), fmt) for fmt in MESH_FORMATS})
+        makers.update({f"mesh.{fmt}": partial(mesh_in, fmt) for fmt in MESH_FORMATS})
         unknown = [name for name in names if name not in makers]
         if unknown:
             raise ValueError(f"no output called {', '.join(unknown)}")
