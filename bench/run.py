@@ -15,7 +15,8 @@ folder's README). Configurations differ only in the loss: ``igr`` (no Laplacian 
 dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults with the old
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
-samples against the true edges as ECD does the edge points; ``genus`` is the mesh's. A cloud
+samples against the true edges as ECD does the edge points; ``genus`` is the mesh's; ``crossing
+faces`` those of the mesh, as its OBJ file holds it, that pass through or touch another. A cloud
 ``<shape>/open`` is that shape's open variant (evaluation.open_clouds: the points beyond a plane or in a ball
 deleted, scored against the whole true surface).
 ``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D
@@ -103,6 +104,7 @@ COLUMNS = [
     ("ECD", "ecd", "{:.4f}"),
     ("curve ECD", "curve_ecd", "{:.4f}"),
     ("genus", "genus", "{:.0f}"),
+    ("crossing faces", "crossing_faces", "{:.0f}"),
     ("false edges", "edge_false_share", "{:.2%}"),
     ("fit s", "fit_seconds", "{:.1f}"),
     ("extract s", "extract_seconds", "{:.1f}"),
@@ -219,8 +221,19 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int |
         scores["curve_ecd"] = edge_chamfer(np.concatenate([curve.points for curve in result.curves]), true_edges)
     mesh = result.mesh
     scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
+    scores["crossing_faces"] = written_crossing_faces(mesh)
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+
+
+def written_crossing_faces(mesh) -> int:
+    """The faces of ``mesh`` as its OBJ file holds it (8 decimals) that pass through or touch
+    another face (``core.intersections``): what a mesh checker finds in the file a user gets."""
+    from core.intersections import crossing_faces
+    from core.mesh_formats import mesh_file, read_obj
+
+    written = read_obj(mesh_file(mesh, "obj"))
+    return len(crossing_faces(written.vertices, written.faces, np.arange(len(written.faces))))
 
 
 def resolve_cloud(cloud: str, data: Path, variants: Path) -> tuple[Path, str]:
@@ -249,6 +262,7 @@ def run_baseline(shape_dir: Path, points_file: str) -> dict:
     for key in ("edge_precision", "edge_recall", "edge_iou", "ecd", "edge_false_share", "curve_ecd"):
         scores[key] = float("nan")
     scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
+    scores["crossing_faces"] = written_crossing_faces(mesh)
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     timings = {"fit_seconds": stages["normals_seconds"], "extract_seconds": stages["poisson_seconds"]}
     return {**scores, **timings, "peak_mb": peak_kb / 1024, "edge_points": 0}
