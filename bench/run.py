@@ -219,21 +219,24 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int |
     scores["curve_ecd"] = float("nan")
     if result.curves and len(true_edges):
         scores["curve_ecd"] = edge_chamfer(np.concatenate([curve.points for curve in result.curves]), true_edges)
-    mesh = result.mesh
-    scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
-    scores["crossing_faces"] = written_crossing_faces(mesh)
+    scores.update(mesh_scores(result.mesh))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
 
 
-def written_crossing_faces(mesh) -> int:
-    """The faces of ``mesh`` as its OBJ file holds it (8 decimals) that pass through or touch
-    another face (``core.intersections``): what a mesh checker finds in the file a user gets."""
+def mesh_scores(mesh) -> dict:
+    """What a fit's and Poisson's meshes are scored on beyond the data's measures: the genus
+    (NaN unless watertight), and the faces of the mesh as its OBJ file holds it (8 decimals) that
+    pass through or touch another (``core.intersections``): what a mesh checker finds in the file
+    a user gets."""
     from core.intersections import crossing_faces
     from core.mesh_formats import mesh_file, read_obj
 
     written = read_obj(mesh_file(mesh, "obj"))
-    return len(crossing_faces(written.vertices, written.faces, np.arange(len(written.faces))))
+    return {
+        "genus": (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan"),
+        "crossing_faces": len(crossing_faces(written.vertices, written.faces, np.arange(len(written.faces)))),
+    }
 
 
 def resolve_cloud(cloud: str, data: Path, variants: Path) -> tuple[Path, str]:
@@ -261,8 +264,7 @@ def run_baseline(shape_dir: Path, points_file: str) -> dict:
     scores = evaluate_shape(mesh, normals, np.zeros(0, dtype=np.int64), shape_dir, points_file=points_file)
     for key in ("edge_precision", "edge_recall", "edge_iou", "ecd", "edge_false_share", "curve_ecd"):
         scores[key] = float("nan")
-    scores["genus"] = (2 - mesh.euler_number) / 2 if mesh.is_watertight else float("nan")
-    scores["crossing_faces"] = written_crossing_faces(mesh)
+    scores.update(mesh_scores(mesh))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     timings = {"fit_seconds": stages["normals_seconds"], "extract_seconds": stages["poisson_seconds"]}
     return {**scores, **timings, "peak_mb": peak_kb / 1024, "edge_points": 0}
