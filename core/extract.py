@@ -38,6 +38,8 @@ _COARSEST_CELLS = 32
 # one edge of 150,000). The grid one cell finer falls differently on the surface, so the
 # extraction samples it again, up to this many grids in all, then falls back to marching cubes.
 DUAL_ATTEMPTS = 3
+# A closed part of the mesh enclosing less than this many grid cells³ is dropped (``without_specks``).
+SPECK_CELLS = 8
 # A clip box is at least this many cells thick along each axis: the coarse-to-fine sampling finds a
 # solid only where a node one level coarser than the finest lies inside it, so a flat cloud (a
 # sheet sampled without noise) cut to its own zero-thickness box would leave nothing to mesh.
@@ -123,13 +125,38 @@ def extract_mesh(
             grid = sample_grid(values_at, resolution + attempt, low, high, should_cancel)
             mesh = dual_contour(grid, values_at, derivatives_at)
             if is_closed_manifold(mesh):
-                return mesh, _grid_stats(grid)
+                return without_specks(mesh, grid.cell), _grid_stats(grid)
             log.warning("dual contouring on %d cells left a non-manifold edge", resolution + attempt)
         log.warning("the mesh is marching cubes' after %d dual-contoured grids", DUAL_ATTEMPTS)
     else:
         grid = sample_grid(values_at, resolution, low, high, should_cancel)
     vertices, faces, _, _ = marching_cubes(grid.values, 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent")
-    return trimesh.Trimesh(vertices + grid.origin, faces, process=False), _grid_stats(grid)
+    mesh = trimesh.Trimesh(vertices + grid.origin, faces, process=False)
+    return without_specks(mesh, grid.cell), _grid_stats(grid)
+
+
+def without_specks(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
+    """``mesh`` without its connected parts that enclose less than ``SPECK_CELLS`` cells³ either
+    way (a lump outside or a void inside), the largest part always kept; the vertices keep their
+    order.
+
+    Why: a part that small is a grid node or two on the wrong side of f = 0, below what the grid
+    resolves; on the public rabbit model three voids of one or two cells inside the solid, whose
+    sharpened faces cross one another (7 crossing faces).
+    """
+    faces = np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return mesh
+    adjacency = trimesh.graph.face_adjacency(faces=faces)
+    parts = trimesh.graph.connected_component_labels(adjacency, node_count=len(faces))
+    corners = np.asarray(mesh.vertices)[faces]  # (F, 3, 3)
+    signed = np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])) / 6
+    keep = np.abs(np.bincount(parts, weights=signed)) >= SPECK_CELLS * cell**3
+    keep[np.argmax(np.bincount(parts))] = True
+    if keep.all():
+        return mesh
+    used, renumbered = np.unique(faces[keep[parts]], return_inverse=True)
+    return trimesh.Trimesh(np.asarray(mesh.vertices)[used], renumbered.reshape(-1, 3), process=False)
 
 
 def clipped(

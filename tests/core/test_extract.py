@@ -391,3 +391,37 @@ def test_a_clip_box_of_no_thickness_still_leaves_a_closed_plate():
     assert mesh.is_watertight and mesh.volume > 0
     half = extract.CLIP_MIN_CELLS * cell / 2
     np.testing.assert_allclose(mesh.bounds, [[-0.2, -0.2, -half], [0.2, 0.2, half]], atol=1e-6)
+
+
+# --- specks --------------------------------------------------------------------------------------
+
+
+def test_parts_smaller_than_a_few_cells_are_dropped_lumps_and_voids_alike():
+    """A sphere of radius 0.3 with, 2 cells wide, a lump beside it and a void inside it (faces
+    turned in), and a part of radius 2.5 cells (65 cells³) that stays: the specks go, every
+    other face and vertex stays as it was, in order."""
+    import trimesh
+
+    cell = 0.01
+    body = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    lump = trimesh.creation.icosphere(subdivisions=1, radius=cell)
+    lump.apply_translation([0.5, 0, 0])
+    void = trimesh.creation.icosphere(subdivisions=1, radius=cell)
+    void.invert()
+    kept = trimesh.creation.icosphere(subdivisions=2, radius=2.5 * cell)
+    kept.apply_translation([0, 0.5, 0])
+    parts = [body, lump, void, kept]
+    mesh = trimesh.util.concatenate(parts)
+    cleaned = extract.without_specks(mesh, cell)
+    expected = trimesh.util.concatenate([body, kept])
+    np.testing.assert_array_equal(cleaned.vertices, expected.vertices)
+    np.testing.assert_array_equal(cleaned.faces, expected.faces)
+    assert cleaned.is_watertight
+
+
+def test_a_lone_speck_is_kept_as_the_largest_part():
+    import trimesh
+
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.001)
+    cleaned = extract.without_specks(speck, 0.01)
+    assert len(cleaned.faces) == len(speck.faces)
