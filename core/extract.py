@@ -40,10 +40,6 @@ _COARSEST_CELLS = 32
 DUAL_ATTEMPTS = 3
 # A closed part of the mesh enclosing less than this many grid cells³ is dropped (``without_specks``).
 SPECK_CELLS = 8
-# A clip box is at least this many cells thick along each axis: the coarse-to-fine sampling finds a
-# solid only where a node one level coarser than the finest lies inside it, so a flat cloud (a
-# sheet sampled without noise) cut to its own zero-thickness box would leave nothing to mesh.
-CLIP_MIN_CELLS = 6
 
 
 @torch.no_grad()
@@ -101,26 +97,16 @@ def extract_mesh(
     high: np.ndarray,
     should_cancel: CancelCheck | None = None,
     method: str = "mc",
-    clip: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[trimesh.Trimesh, dict]:
     """The mesh of f = 0 over the box [low, high] plus a margin, in the unit frame.
 
     ``method`` "mc" is marching cubes of the sampled grid (it cuts across every sharp edge);
     "sharp" is dual contouring of the same grid (``core.dual``), whose vertices sit on edges and
-    corners. ``clip`` (low, high), if given, is a box the surface may not leave: f is replaced by
-    max(f, box_distance), so whatever of the solid lies outside the box is cut off by its planes
-    (``clipped``); the box is widened to ``CLIP_MIN_CELLS`` cells where it is thinner. Returns the
-    mesh and statistics (how many grid nodes were evaluated, of how many).
+    corners. Returns the mesh and statistics (how many grid nodes were evaluated, of how many).
     """
-    values_at: Callable[[np.ndarray], np.ndarray] = partial(evaluate, model, should_cancel=should_cancel)
-    derivatives_at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] = partial(
-        derivatives, model, should_cancel=should_cancel
-    )
-    if clip is not None:
-        cell = (1.0 + 2 * GRID_MARGIN) / resolution
-        widen = np.maximum(CLIP_MIN_CELLS * cell - (np.asarray(clip[1]) - np.asarray(clip[0])), 0) / 2
-        values_at, derivatives_at = clipped(values_at, derivatives_at, clip[0] - widen, clip[1] + widen)
+    values_at = partial(evaluate, model, should_cancel=should_cancel)
     if method == "sharp":
+        derivatives_at = partial(derivatives, model, should_cancel=should_cancel)
         for attempt in range(DUAL_ATTEMPTS):
             grid = sample_grid(values_at, resolution + attempt, low, high, should_cancel)
             mesh = dual_contour(grid, values_at, derivatives_at)
@@ -157,42 +143,6 @@ def without_specks(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
         return mesh
     used, renumbered = np.unique(faces[keep[parts]], return_inverse=True)
     return trimesh.Trimesh(np.asarray(mesh.vertices)[used], renumbered.reshape(-1, 3), process=False)
-
-
-def clipped(
-    values_at: Callable[[np.ndarray], np.ndarray],
-    derivatives_at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-    low: np.ndarray,
-    high: np.ndarray,
-) -> tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]:
-    """``values_at`` and ``derivatives_at`` of max(f, b), where b(x) = max over the axes of
-    (low - x, x - high) is the box's L∞ signed distance: its zero level is the box's faces and its
-    gradient their normal, so dual contouring puts a cut's rim on the cut's edge.
-
-    Why: a fit is free outside the cloud's extent where few samples land; a rod or a thin sheet
-    runs on past its open end (an infinite cylinder cut only by the grid's margin, 0.05 beyond
-    the last point), though no surface lies beyond the farthest points.
-    """
-    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-
-    def box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        beyond = np.concatenate([low - points, points - high], axis=1)  # (n, 6)
-        face = np.argmax(beyond, axis=1)
-        normal = np.zeros((len(points), 3))
-        normal[np.arange(len(points)), face % 3] = np.where(face < 3, -1.0, 1.0)
-        return beyond[np.arange(len(points)), face], normal
-
-    def values(points: np.ndarray) -> np.ndarray:
-        f = values_at(points)
-        return np.maximum(f, box(points)[0].astype(f.dtype))
-
-    def values_and_gradients(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        f, gradient = derivatives_at(points)
-        distance, normal = box(points)
-        cut = distance > f
-        return np.where(cut, distance, f), np.where(cut[:, None], normal, gradient)
-
-    return values, values_and_gradients
 
 
 def _grid_stats(grid: Grid) -> dict:

@@ -150,11 +150,7 @@ def reconstruct(
     if progress is not None:
         progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
     low, high = unit.min(axis=0), unit.max(axis=0)
-    # No surface lies beyond the farthest points (their noise puts them past the true extent, not
-    # short of it): the mesh is cut to their box.
-    mesh, stats = extract_mesh(
-        model, params.resolution, low, high, should_cancel, method=params.extraction, clip=(low, high)
-    )
+    mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
     curves: list[Curve] = []
     if params.extraction == "sharp":
         normals = unit_normals(model, unit, should_cancel=should_cancel)

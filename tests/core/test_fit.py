@@ -566,25 +566,3 @@ def test_an_open_cube_gives_one_outward_surface_that_follows_its_points_and_clos
     samples, _ = trimesh.sample.sample_surface(mesh, 50_000, seed=0)
     far = cKDTree(shape.points[keep]).query(samples)[0] > 0.04
     assert 0.1 < far.mean() < 0.25 and samples[far, 2].min() > 0.4, (far.mean(), samples[far].min(axis=0))
-
-
-def test_a_rod_sampled_on_its_side_ends_where_its_points_end():
-    """A thin rod's fit runs on past its open ends, where few samples land (an endless cylinder,
-    cut before only by the grid's margin, 0.05 beyond the last point: the public trimesh model
-    `round.stl`, exact d_H 0.075). The mesh is cut to the points' box. Measured (2026-12-05, seed
-    0, the short schedule): mesh z from -0.558 to 0.564 before, -0.5099 to 0.5076 now, for points
-    from -0.5099 to 0.5076."""
-    from core.reconstruct import reconstruct
-
-    rng = np.random.default_rng(0)
-    angle, z = rng.uniform(0, 2 * np.pi, 8000), rng.uniform(-0.5, 0.5, 8000)
-    points = np.stack([0.06 * np.cos(angle), 0.06 * np.sin(angle), z], axis=1) + rng.normal(0, 0.005, (8000, 3))
-    mesh = reconstruct(points, FitParams(**SHORT)).mesh
-    assert mesh.is_watertight
-    assert (
-        points[:, 2].min() - 1e-3 <= mesh.vertices[:, 2].min()
-        and mesh.vertices[:, 2].max() <= points[:, 2].max() + 1e-3
-    )
-    side = np.abs(mesh.vertices[:, 2]) < 0.45
-    radius = np.linalg.norm(mesh.vertices[side, :2], axis=1)
-    assert np.abs(radius - 0.06).max() < 0.01, (radius.min(), radius.max())
