@@ -55,12 +55,7 @@ def dual_contour(grid: Grid, values_at: Function, derivatives_at: Derivatives, s
     (``core.features.side_planes``) instead of f's own; a vertex that would then leave its cell's
     neighbourhood (one on the band's flank, far from the edge) takes the nearer face's plane only.
     """
-    # Keep every crossing off the grid's nodes, where its grid edge (and so its quad) would be
-    # ambiguous: values within 0.001 cells of zero are moved to ±0.001 cells, so that each crossing
-    # lies at least ~0.0006 cells from a node (float32 resolves 0.00002 at 160 cells).
-    tiny = np.float32(1e-3 * grid.cell)
-    values = grid.values.astype(np.float32)
-    values = np.where(np.abs(values) < tiny, np.where(values < 0, -tiny, tiny), values)
+    values = grid.values_off_zero()
     corners, triangles, _, _ = marching_cubes(values, 0.0)
     crossings, axis, lower = _crossings(grid, corners)
     normals = unit(derivatives_at(crossings)[1])

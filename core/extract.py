@@ -116,7 +116,9 @@ def extract_mesh(
         log.warning("the mesh is marching cubes' after %d dual-contoured grids", DUAL_ATTEMPTS)
     else:
         grid = sample_grid(values_at, resolution, low, high, should_cancel)
-    vertices, faces, _, _ = marching_cubes(grid.values, 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent")
+    vertices, faces, _, _ = marching_cubes(
+        grid.values_off_zero(), 0.0, spacing=(grid.cell,) * 3, gradient_direction="descent"
+    )
     mesh = trimesh.Trimesh(vertices + grid.origin, faces, process=False)
     return without_specks(mesh, grid.cell), _grid_stats(grid)
 
