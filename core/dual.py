@@ -25,6 +25,7 @@ from skimage.measure import marching_cubes
 from core.features import Derivatives, SidePlanes, side_planes, unit
 from core.grid import Grid
 from core.intersections import crossing_faces
+from core.trees import kd_tree
 
 # Directions whose weight in a patch's QEF is below this fraction of the strongest are left free
 # (truncated pseudo-inverse): along a flat face or an edge the vertex stays at the crossings' mean.
@@ -40,6 +41,10 @@ _UNCROSS_PASSES = 8  # one vertex per crossing face per pass: a crossing may tak
 # from their means left 21 faces through others. (Their faces add 7 % to the faces tested there;
 # testing every face took five times as long.)
 UNCROSS_FROM = 0.25
+# Vertices with another vertex this many cells away or nearer whose faces face the other way (the
+# two sheets of a wall thinner than a cell or two, whose vertices can cross even near their
+# means) are checked for crossings too: a public tray 0.01 thick kept 6 crossing faces at its rim.
+FACING_REACH = 1.5
 # The share of the way back of the first pass: enough to part faces that only touch (vertices
 # placed on one edge line), too little to move the mesh.
 _TOUCH_SHARE = 1e-3
@@ -85,7 +90,8 @@ def dual_contour(grid: Grid, values_at: Function, derivatives_at: Derivatives, s
     faces, face_normals = _triangulate(quads, quad_normals, placed, moved, values_at)
     placed = _unfold(placed, mean, faces, face_normals, derivatives_at, 0.01 * grid.cell**2)
     off_mean = np.linalg.norm(placed - mean, axis=1) >= UNCROSS_FROM * grid.cell
-    placed = _uncross(placed, mean, faces, moved | off_mean)
+    folded = _folded(placed, faces, FACING_REACH * grid.cell)
+    placed = _uncross(placed, mean, faces, moved | off_mean | folded)
     return trimesh.Trimesh(placed, faces, process=False)
 
 
@@ -259,6 +265,20 @@ def _uncross(vertices: np.ndarray, fallback: np.ndarray, faces: np.ndarray, mova
         vertices[back] += share * (fallback[back] - vertices[back])
         suspects = np.flatnonzero(np.isin(faces, back).any(axis=1))
     return vertices
+
+
+def _folded(vertices: np.ndarray, faces: np.ndarray, reach: float) -> np.ndarray:
+    """(v,) bool: the vertices of the mesh edges whose two faces' normals differ by more than 120°
+    (a fold sharper than 60°, such as a thin wall's end), and those with another vertex within
+    ``reach`` whose vertex normal differs by as much (the two
+    sides of a thin wall)."""
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    folded = np.zeros(len(vertices), dtype=bool)
+    folded[mesh.face_adjacency_edges[mesh.face_adjacency_angles > np.radians(120)].ravel()] = True
+    pairs = kd_tree(vertices).query_pairs(reach, output_type="ndarray")
+    normal = mesh.vertex_normals
+    folded[pairs[np.einsum("ij,ij->i", normal[pairs[:, 0]], normal[pairs[:, 1]]) < -0.5].ravel()] = True
+    return folded
 
 
 def _unfold(

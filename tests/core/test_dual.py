@@ -391,3 +391,27 @@ def test_edges_json_lists_each_curve_in_order_with_its_angle_and_side():
         assert set(written) == {"points", "dihedral", "convex"}
         np.testing.assert_allclose(written["points"], curve.points, atol=1e-6)
         assert written["dihedral"] == pytest.approx(90, abs=3) and written["convex"] is True
+
+
+def test_folded_vertices_are_a_sharp_folds_and_a_thin_walls_two_sides_and_nothing_on_a_plain_box():
+    """What ``_uncross`` tests besides the vertices it moved (a public tray 0.01 thick kept 6
+    crossing faces at its rim, all of vertices within 0.16 cells of their means): the vertices of
+    a fold sharper than 60° and those facing another side within reach."""
+    from core.dual import _folded
+
+    # A sheet folded back on itself: two triangles on an edge along x, their half-planes 30° apart
+    # (normals 150° apart).
+    angle = np.radians(30)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, np.cos(angle), np.sin(angle)]], dtype=float)
+    folded = _folded(vertices, np.array([[0, 1, 2], [1, 0, 3]]), reach=0.01)
+    np.testing.assert_array_equal(folded, [True, True, False, False])
+    # A right angle is no fold, and far vertices are not facing.
+    vertices[3] = [0.5, 0, 1]
+    assert not _folded(vertices, np.array([[0, 1, 2], [1, 0, 3]]), reach=0.01).any()
+    # A slab 0.004 thick: its two big faces face each other within reach; a box is left alone.
+    slab = trimesh.creation.box([0.4, 0.4, 0.004])
+    slab = slab.subdivide().subdivide()
+    inner = (np.abs(slab.vertices[:, :2]) < 0.19).all(axis=1)
+    assert inner.sum() >= 10 and _folded(slab.vertices, slab.faces, reach=0.01)[inner].all()
+    plain = trimesh.creation.box([0.4, 0.4, 0.4]).subdivide().subdivide()
+    assert not _folded(plain.vertices, plain.faces, reach=0.01).any()
