@@ -270,8 +270,7 @@ def _uncross(vertices: np.ndarray, fallback: np.ndarray, faces: np.ndarray, mova
 def _folded(vertices: np.ndarray, faces: np.ndarray, reach: float) -> np.ndarray:
     """(v,) bool: the vertices of the mesh edges whose two faces' normals differ by more than 120°
     (a fold sharper than 60°, such as a thin wall's end), and those with another vertex within
-    ``reach`` whose vertex normal differs by as much (the two
-    sides of a thin wall)."""
+    ``reach`` whose vertex normal differs by as much (the two sides of a thin wall)."""
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     folded = np.zeros(len(vertices), dtype=bool)
     folded[mesh.face_adjacency_edges[mesh.face_adjacency_angles > np.radians(120)].ravel()] = True
