@@ -43,7 +43,8 @@ _UNCROSS_PASSES = 8  # one vertex per crossing face per pass: a crossing may tak
 UNCROSS_FROM = 0.25
 # Vertices with another vertex this many cells away or nearer whose faces face the other way (the
 # two sheets of a wall thinner than a cell or two, whose vertices can cross even near their
-# means) are checked for crossings too: a public tray 0.01 thick kept 6 crossing faces at its rim.
+# means), and those of folds sharper than 60° (a thin wall's end), are checked for crossings too
+# (``_folded``): a public tray 0.01 thick kept 6 crossing faces at its rim.
 FACING_REACH = 1.5
 # The share of the way back of the first pass: enough to part faces that only touch (vertices
 # placed on one edge line), too little to move the mesh.
