@@ -489,11 +489,15 @@ def steps(overrides: dict, repeats: int = 30) -> str:
 
 
 def step_flops(rows: int, laplacian_rows: int, width: int, depth: int) -> float:
-    """Multiply-adds x 2 of one step's matrix products: forward, and backward (input and weights)."""
-    stacked = 4 * rows + laplacian_rows  # [f; grad (3 columns); Laplacian] rows per layer
-    hidden = (depth - 1) * stacked * width * width * 2 * 3
+    """Multiply-adds x 2 of one step's matrix products: forward, and backward (input and weights).
+
+    A row with a Laplacian carries [f; ∇f (3 columns); Δf] through each layer (5 rows); one without
+    carries f forward and ∂f/∂h back (2 rows, ``ImplicitNetwork.gradient``); each row is multiplied
+    once forward and twice backward."""
+    carried = 5 * laplacian_rows + 2 * (rows - laplacian_rows)
+    hidden = (depth - 1) * carried * width * width * 2 * 3
     first = rows * 3 * width * 2 * 2
-    last = stacked * width * 2 * 3
+    last = carried * width * 2 * 3
     return hidden + first + last
 
 
