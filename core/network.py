@@ -83,7 +83,7 @@ class ImplicitNetwork(nn.Module):
 
         ``laplacian_rows=None`` means every row; 0 skips the Laplacian (returned as None). Those
         rows go through the forward Laplacian; the others take f and ∇f from ``gradient``, whose
-        products cost half as much per row, forward and backward (a fit's step 10-15 % faster
+        products cost half as much per row, forward and backward (a fit's step 14-18 % faster
         where the products dominate, as in float32).
         ``matmul_dtype=torch.bfloat16`` runs the matrix products in bfloat16 (the element-wise work
         stays in the precision of ``x``): several times faster on CPUs with AMX, and accurate
