@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.corners import SNAP_RADIUS, _uncrossed, corners, extend_to_corners, snap_corners
+from core.corners import SNAP_RADIUS, Corner, _refitted, _uncrossed, corners, extend_to_corners, snap_corners
 from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
 from core.intersections import crossing_faces
-from evaluation.metrics import distance_to_mesh
-from tests.core.test_dual import HIGH, IDENTITY, LOW, ROTATION, box, box_mesh, gradient
+from evaluation.metrics import distance_to_mesh, sample_surface
+from tests.core.test_dual import HALF, HIGH, IDENTITY, LOW, ROTATION, box, box_mesh, gradient
 
 JOIN = 0.05
 APEX = np.array([0.1, 0.2, 0.3])
@@ -211,3 +211,53 @@ def test_a_sharp_boxs_mesh_stays_where_it_is():
     # Within SNAP_RADIUS of a corner found, which is within 0.001 of a true one.
     assert (np.linalg.norm(moved[:, None] - truth.vertices[None], axis=2).min(axis=1) <= SNAP_RADIUS + 0.001).all()
     assert distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces).max() < 0.001
+
+
+def noisy_points(mesh: trimesh.Trimesh, count: int = 16_384, noise: float = 0.005, seed: int = 0) -> np.ndarray:
+    """``count`` points drawn uniformly on ``mesh``'s surface, with Gaussian noise of ``noise`` per
+    coordinate, as the sample data are made."""
+    points = sample_surface(mesh.vertices, mesh.faces, count, seed)
+    return points + np.random.default_rng(seed).normal(0.0, noise, points.shape)
+
+
+def tilted(normal: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
+    """``normal`` turned by ``degrees`` about ``axis``."""
+    return trimesh.transformations.rotation_matrix(np.radians(degrees), axis)[:3, :3] @ normal
+
+
+def test_planes_tilted_by_the_rounding_are_refitted_to_the_points_of_their_faces():
+    # The corner of the box at HALF (faces x, y, z = HALF's), read from planes each tilted by 8
+    # degrees and 0.008 off, as the side normals of a knot of short curves give them.
+    truth = box_mesh()
+    normals = np.array([tilted(X, Y, 8.0), tilted(Y, Z, -8.0), tilted(Z, X, 8.0)])
+    offsets = normals @ HALF + np.array([0.008, -0.008, 0.008])
+    off = Corner(np.linalg.solve(normals, offsets), normals, offsets)
+    assert np.linalg.norm(off.point - HALF) > 0.01
+    refitted = _refitted(off, noisy_points(truth), JOIN)
+    assert np.linalg.norm(refitted.point - HALF) < 0.003
+    assert np.degrees(np.arccos(np.einsum("ij,ij->i", refitted.normals, np.eye(3)))).max() < 2.0  # of the faces'
+    # Oriented as before (the side the fit rounds it from), and through the corner it gives.
+    assert (np.einsum("ij,ij->i", refitted.normals, normals) > 0).all()
+    np.testing.assert_allclose(refitted.normals @ refitted.point, refitted.offsets, atol=1e-12)
+
+
+def test_a_corner_with_a_face_the_points_do_not_show_is_kept():
+    # Points on two of the corner's faces only (its z face left unsampled, as an open cloud's).
+    truth = box_mesh()
+    points = noisy_points(truth)
+    points = points[points[:, 2] < HALF[2] - 0.03]
+    corner = Corner(HALF + 0.004, np.eye(3), HALF + 0.004)
+    assert _refitted(corner, points, JOIN) is corner
+
+
+def test_snapping_with_the_points_puts_a_rounded_boxs_corners_back_as_well():
+    # Its curves already give the corners to within 0.003 (the test above): read from the noisy
+    # points of the faces instead, they stay within the noise.
+    mesh, curves, truth = rounded_box("aligned", 0.03)
+    snapped, found = snap_corners(mesh, curves, JOIN, noisy_points(truth))
+    assert len(found) == 8
+    to_truth = np.linalg.norm(np.array([c.point for c in found])[:, None] - truth.vertices[None], axis=2).min(axis=1)
+    assert to_truth.max() < 0.005
+    assert distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces).max() < 0.005
+    assert snapped.is_watertight and snapped.is_winding_consistent and snapped.volume > 0
+    assert len(crossing_faces(snapped.vertices, snapped.faces, np.arange(len(snapped.faces)))) == 0
