@@ -241,6 +241,28 @@ def test_planes_tilted_by_the_rounding_are_refitted_to_the_points_of_their_faces
     np.testing.assert_allclose(refitted.normals @ refitted.point, refitted.offsets, atol=1e-12)
 
 
+def test_a_concave_corners_planes_are_refitted_on_the_empty_side():
+    # A pocket's corner at the origin: its floor z = 0 and walls x = 0 and y = 0 bound the empty
+    # quarter x, y < 0, z > 0, so its planes face the empty side (n.x <= offset there), as
+    # _meeting_point orients them; each read tilted by 8 degrees and 0.008 off, as at
+    # octagon_pocket's pocket corners.
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0.0, 0.2, (2, 3, 1500))
+    faces = [
+        np.stack([-u[0], -v[0], 0 * u[0]], 1),
+        np.stack([0 * u[1], -v[1], u[1]], 1),
+        np.stack([-u[2], 0 * u[2], v[2]], 1),
+    ]
+    points = np.concatenate(faces) + rng.normal(0.0, 0.005, (4500, 3))
+    normals = np.array([tilted(-Z, X, 8.0), tilted(X, Y, -8.0), tilted(Y, Z, 8.0)])
+    offsets = np.array([0.008, -0.008, 0.008])
+    off = Corner(np.linalg.solve(normals, offsets), normals, offsets)
+    assert np.linalg.norm(off.point) > 0.01
+    refitted = _refitted(off, points, JOIN)
+    assert np.linalg.norm(refitted.point) < 0.003
+    assert np.degrees(np.arccos(np.einsum("ij,ij->i", refitted.normals, np.array([-Z, X, Y])))).max() < 2.0
+
+
 def test_a_corner_with_a_face_the_points_do_not_show_is_kept():
     # Points on two of the corner's faces only (its z face left unsampled, as an open cloud's).
     truth = box_mesh()
