@@ -25,6 +25,12 @@ with the cloud's normals; it has no edges (their scores are blank), its fit s is
 estimation and orientation and its extract s the Poisson solve. It needs the ``bench`` extra, and
 is in the default list only when Open3D is installed.
 
+``--fits DIR`` keeps each fit's network in DIR and, where DIR already holds the same fit (the same
+cloud and parameters, but for those of the extraction alone: ``extraction``, ``edge_angle``,
+``edge_width``, ``resolution``), extracts that one again instead of fitting: a change to the
+extraction is then measured on the same fits, from a checkout before it and one after (a fit
+costs most of a job and differs with any change of rounding); the fit s column is then the saved fit's.
+
 ``--seeds 0,1,2`` fits every pair once per seed and adds the seeds' mean and range: a single fit's
 d_H moves by about 15 % between seeds, so a change is judged over seeds. ``--jobs 2`` runs two fits
 at once with the cores split between them (quicker for research runs; times are then a shared
@@ -42,6 +48,7 @@ and by two processes with one thread each, side by side: jobs per hour for each 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -129,13 +136,14 @@ def main() -> int:
         "--jobs", type=int, default=1, help="quality fits at once, the cores split among them (default 1)"
     )
     parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--fits", type=Path, help="keep the fitted networks here, and extract those it holds again")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "latest.md")
     parser.add_argument("--one", nargs=2, metavar=("CONFIG", "CLOUD"), help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     overrides = dict(item.split("=", 1) for item in args.set)
     if args.one:
-        print(json.dumps(run_one(args.one[0], args.one[1], args.data, overrides, args.threads)))
+        print(json.dumps(run_one(args.one[0], args.one[1], args.data, overrides, args.threads, args.fits)))
         return 0
     seeds = [int(seed) for seed in args.seeds.split(",")] if args.seeds else None
     if seeds is not None and "seed" in overrides:
@@ -152,7 +160,7 @@ def main() -> int:
     sections = [f"Made by `{command.strip()}` on {datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {machine()}{shared}."]
     if "quality" in parts:
         configs, clouds = args.configs.split(","), args.clouds.split(",")
-        sections.append(quality(configs, clouds, args.data, overrides, seeds, args.jobs))
+        sections.append(quality(configs, clouds, args.data, overrides, seeds, args.jobs, args.fits))
     if "steps" in parts:
         sections.append(steps(overrides))
     if "throughput" in parts:
@@ -199,11 +207,13 @@ def params_for(config: str, overrides: dict):
     return FitParams(**{**CONFIGS[config], **overrides})
 
 
-def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int | None = None) -> dict:
+def run_one(
+    config: str, cloud: str, data: Path, overrides: dict, threads: int | None = None, fits: Path | None = None
+) -> dict:
     """Fit one cloud with one configuration in this process (on ``threads`` torch threads, None:
-    torch's default); its scores, times and peak memory."""
+    torch's default), or take the fit from ``fits`` (``fitted``); its scores, times and peak memory."""
     from core.ply import read_points
-    from core.reconstruct import reconstruct
+    from core.reconstruct import extract
     from evaluation.metrics import edge_chamfer
     from evaluation.sample_data import evaluate_shape
 
@@ -213,7 +223,10 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int |
             return run_baseline(shape_dir, points_file)
         configure_core(threads)
         points = read_points(shape_dir / points_file)
-        result = reconstruct(points, params_for(config, overrides))
+        params = params_for(config, overrides)
+        model, fit_seconds = fitted(points, params, cloud, fits)
+        result = extract(model, points, params)
+        result.timings = {"fit_seconds": fit_seconds, **result.timings}
         scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
         true_edges = np.load(shape_dir / "edges_gt.npy")
     scores["curve_ecd"] = float("nan")
@@ -222,6 +235,39 @@ def run_one(config: str, cloud: str, data: Path, overrides: dict, threads: int |
     scores.update(mesh_scores(result.mesh))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+
+
+# The parameters that only the extraction reads: fits that differ in these alone are the same fit.
+EXTRACTION_FIELDS = ("extraction", "edge_angle", "edge_width", "resolution")
+
+
+def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
+    """The network fitted to ``points`` (N, 3) with ``params``, and the seconds its fit took: from
+    ``fits`` when it holds this fit (one file per cloud and fitting parameters), else fitted now
+    (and written there, whole or not at all)."""
+    import torch
+
+    from core.fit import fit
+    from core.frame import Frame
+    from core.network import ImplicitNetwork
+
+    fitting = {name: value for name, value in params.model_dump().items() if name not in EXTRACTION_FIELDS}
+    key = hashlib.sha256(json.dumps([cloud, fitting], sort_keys=True).encode()).hexdigest()[:16]
+    path = fits / f"{key}.pt" if fits is not None else None
+    if path is not None and path.exists():
+        saved = torch.load(path, weights_only=True)
+        model = ImplicitNetwork(params.width, params.depth, params.beta)
+        model.load_state_dict(saved["state"])
+        return model, float(saved["fit_seconds"])
+    started = time.perf_counter()
+    model = fit(Frame.of(points).to_unit(points), params)
+    seconds = time.perf_counter() - started
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(".partial")
+        torch.save({"state": model.state_dict(), "fit_seconds": seconds, "cloud": cloud, "params": fitting}, partial)
+        partial.replace(path)
+    return model, seconds
 
 
 def mesh_scores(mesh) -> dict:
@@ -277,6 +323,7 @@ def quality(
     overrides: dict,
     seeds: list[int] | None = None,
     jobs: int = 1,
+    fits: Path | None = None,
 ) -> str:
     """The per-shape table and the averages; with ``seeds``, a row per seed and a table of the seeds'
     mean and range, since one fit's d_H moves by about 15 % between seeds (docs/benchmarks.md).
@@ -285,7 +332,7 @@ def quality(
     runs = [(config, cloud, seed) for config in configs for cloud in clouds for seed in seeds or [None]]
     threads = fit_threads(jobs) if jobs > 1 else None
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        results = dict(zip(runs, pool.map(lambda run: fit_in_subprocess(*run, data, overrides, threads), runs)))
+        results = dict(zip(runs, pool.map(lambda run: fit_in_subprocess(*run, data, overrides, threads, fits), runs)))
     params = params_for("default", overrides)
     rows = [
         ((cloud, config, *seed_cell(seed)), results[config, cloud, seed])
@@ -343,7 +390,7 @@ def fit_threads(jobs: int) -> int:
 
 
 def fit_in_subprocess(
-    config: str, cloud: str, seed: int | None, data: Path, overrides: dict, threads: int | None
+    config: str, cloud: str, seed: int | None, data: Path, overrides: dict, threads: int | None, fits: Path | None
 ) -> dict | None:
     """``run_one`` in a fresh process (so that its peak memory is its own); None if it failed."""
     label = f"{cloud} with {config}" + (f", seed {seed}" if seed is not None else "")
@@ -352,6 +399,8 @@ def fit_in_subprocess(
         overrides = {**overrides, "seed": seed}
     command = [sys.executable, __file__, "--one", config, cloud, "--data", str(data)]
     command += [f"--set={name}={value}" for name, value in overrides.items()]
+    if fits is not None:
+        command += ["--fits", str(fits)]
     env = None
     if threads is not None:  # OpenMP reads its count at start; torch's own is set in run_one
         command += ["--threads", str(threads)]
