@@ -213,7 +213,7 @@ def run_one(
     """Fit one cloud with one configuration in this process (on ``threads`` torch threads, None:
     torch's default), or take the fit from ``fits`` (``fitted``); its scores, times and peak memory."""
     from core.ply import read_points
-    from core.reconstruct import extract
+    from core.reconstruct import extract_outputs
     from evaluation.metrics import edge_chamfer
     from evaluation.sample_data import evaluate_shape
 
@@ -225,7 +225,7 @@ def run_one(
         points = read_points(shape_dir / points_file)
         params = params_for(config, overrides)
         model, fit_seconds = fitted(points, params, cloud, fits)
-        result = extract(model, points, params)
+        result = extract_outputs(model, points, params)
         result.timings = {"fit_seconds": fit_seconds, **result.timings}
         scores = evaluate_shape(result.mesh, result.normals, result.edge_indices, shape_dir, points_file=points_file)
         true_edges = np.load(shape_dir / "edges_gt.npy")

@@ -146,12 +146,12 @@ def reconstruct(
     started = time.perf_counter()
     model = fit(frame.to_unit(points), params, progress=progress, should_cancel=should_cancel)
     fitted = time.perf_counter()
-    result = extract(model, points, params, progress, should_cancel)
+    result = extract_outputs(model, points, params, progress, should_cancel)
     result.timings = {"fit_seconds": fitted - started, **result.timings}
     return result
 
 
-def extract(
+def extract_outputs(
     model: ImplicitNetwork,
     points: np.ndarray,
     params: FitParams,
