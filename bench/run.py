@@ -26,7 +26,7 @@ estimation and orientation and its extract s the Poisson solve. It needs the ``b
 is in the default list only when Open3D is installed.
 
 ``--fits DIR`` keeps each fit's network in DIR and, where DIR already holds the same fit (the same
-cloud and parameters, but for those of the extraction alone: ``extraction``, ``edge_angle``,
+points and parameters, but for those of the extraction alone: ``extraction``, ``edge_angle``,
 ``edge_width``, ``resolution``), extracts that one again instead of fitting: a change to the
 extraction is then measured on the same fits, from a checkout before it and one after (a fit
 costs most of a job and differs with any change of rounding); the fit s column is then the saved fit's.
@@ -243,8 +243,8 @@ EXTRACTION_FIELDS = ("extraction", "edge_angle", "edge_width", "resolution")
 
 def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     """The network fitted to ``points`` (N, 3) with ``params``, and the seconds its fit took: from
-    ``fits`` when it holds this fit (one file per cloud and fitting parameters), else fitted now
-    (and written there, whole or not at all)."""
+    ``fits`` when it holds this fit (one file per cloud, by its points, and fitting parameters),
+    else fitted now (and written there, whole or not at all)."""
     import torch
 
     from core.fit import fit
@@ -252,7 +252,7 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     from core.network import ImplicitNetwork
 
     fitting = {name: value for name, value in params.model_dump().items() if name not in EXTRACTION_FIELDS}
-    key = hashlib.sha256(json.dumps([cloud, fitting], sort_keys=True).encode()).hexdigest()[:16]
+    key = hashlib.sha256(points.tobytes() + json.dumps(fitting, sort_keys=True).encode()).hexdigest()[:16]
     path = fits / f"{key}.pt" if fits is not None else None
     if path is not None and path.exists():
         saved = torch.load(path, weights_only=True)
