@@ -247,9 +247,8 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     else fitted now (and written there, whole or not at all)."""
     import torch
 
-    from core.fit import fit
-    from core.frame import Frame
     from core.network import ImplicitNetwork
+    from core.reconstruct import fit_cloud
 
     fitting = {name: value for name, value in params.model_dump().items() if name not in EXTRACTION_FIELDS}
     key = hashlib.sha256(points.tobytes() + json.dumps(fitting, sort_keys=True).encode()).hexdigest()[:16]
@@ -260,7 +259,7 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
         model.load_state_dict(saved["state"])
         return model, float(saved["fit_seconds"])
     started = time.perf_counter()
-    model = fit(Frame.of(points).to_unit(points), params)
+    model = fit_cloud(points, params)
     seconds = time.perf_counter() - started
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -142,13 +142,23 @@ def reconstruct(
     should_cancel: CancelCheck | None = None,
 ) -> Reconstruction:
     """Fit ``points`` (N, 3, input coordinates) and extract the mesh, normals and edge points."""
-    frame = Frame.of(points)
     started = time.perf_counter()
-    model = fit(frame.to_unit(points), params, progress=progress, should_cancel=should_cancel)
+    model = fit_cloud(points, params, progress, should_cancel)
     fitted = time.perf_counter()
     result = extract_outputs(model, points, params, progress, should_cancel)
     result.timings = {"fit_seconds": fitted - started, **result.timings}
     return result
+
+
+def fit_cloud(
+    points: np.ndarray,
+    params: FitParams,
+    progress: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+) -> ImplicitNetwork:
+    """``core.fit.fit`` of ``points`` (N, 3, input coordinates) in their unit frame, the frame in
+    which ``extract_outputs`` reads the network."""
+    return fit(Frame.of(points).to_unit(points), params, progress=progress, should_cancel=should_cancel)
 
 
 def extract_outputs(
@@ -159,8 +169,8 @@ def extract_outputs(
     should_cancel: CancelCheck | None = None,
 ) -> Reconstruction:
     """The mesh, normals and edge points of ``model``, a network fitted to ``points`` (N, 3, input
-    coordinates) in their unit frame; apart from ``reconstruct`` so that a saved fit can be extracted
-    again by changed extraction code (bench/saved_fits.py)."""
+    coordinates) in their unit frame (``fit_cloud``); apart from ``reconstruct`` so that a saved fit
+    can be extracted again by changed extraction code (``bench/run.py --fits``)."""
     frame = Frame.of(points)
     unit = frame.to_unit(points)
     started = time.perf_counter()
