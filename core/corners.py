@@ -9,7 +9,10 @@ their two sides. Where those normals fall into three faces, each pair of which h
 the samples, the three planes meet at one point; the mesh vertex nearest to it is put there, and
 the vertices of the rounding around it onto the faces. The side normals near a corner are partly the
 rounding's, so where the input points are given, each plane is then refitted to the points of its
-face around the corner, off the other two faces.
+face around the corner, off the other two faces. Where the curves do not show three faces (an
+acute ridge comes out as two creases a strip apart, and the edges of the thin face it runs into
+in scraps), the faces are read from the input points around the curves' ends instead, grouped
+by the fit's normals there.
 """
 
 from __future__ import annotations
@@ -44,6 +47,15 @@ _REFIT_BAND = 0.02  # four times the noise of the sample data: nearly the whole 
 _REFIT_PASSES = 3
 _REFIT_POINTS = 12  # input points that make a plane
 _REFIT_SPREAD = 1.5  # the widest spread of a plane's points off it, over the narrowest
+# Where the curves do not show a corner's three faces (wedge's acute ridge comes out as two creases
+# a strip apart, and its end face's edges in scraps), the faces are read from the input points
+# within _POINTS_REACH of the curves' ends, grouped by the fit's normals. Wider than _REFIT_REACH:
+# two faces meeting at 26 degrees cross at a point four times as far off as their planes are,
+# and the tips of 18 fits came out 0.0045-0.0062 from the truth at 0.35 against 0.010-0.023
+# at 0.16 (docs/benchmarks.md).
+_POINTS_REACH = 0.35
+_GROUPED = 1024  # of those points, grouped by normal (its cost grows as the square of their number)
+_FLAT = 5.0  # degrees: a face's plane is fitted to its points whose fit normal is this near its own
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
 _UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
 _INSIDE = 1e-6  # unit frame: how far inside a plane counts as inside
@@ -61,23 +73,25 @@ class Corner:
 
 
 def snap_corners(
-    mesh: trimesh.Trimesh, curves: list[Curve], join: float, points: np.ndarray | None = None
+    mesh: trimesh.Trimesh,
+    curves: list[Curve],
+    join: float,
+    points: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
 ) -> tuple[trimesh.Trimesh, list[Corner]]:
     """``mesh`` with its rounded corners put back, and the corners of ``curves`` (``corners``).
 
-    With the input ``points`` (n, 3, unit frame), each corner's planes are first refitted to the
-    points of its faces (``_refitted``). For each corner the nearest vertex within ``join`` goes
+    With the input ``points`` (n, 3, unit frame) and the fit's ``normals`` (n, 3) at them, the
+    corners are found as ``corners`` finds them with those. For each corner the nearest vertex within ``join`` goes
     onto its point (or the next nearest, of ``_CANDIDATES``, where that would turn a face over);
     then each vertex within ``SNAP_RADIUS`` that lies inside all three faces' planes (the rounding)
     goes onto the nearest point of the faces, unless a face of it would turn over. A moved vertex
     of a face that then crosses or touches another (``core.intersections``) goes back where it
     was: on featuretype two faces did. Returns a new mesh, same faces."""
-    found = corners(curves, join)
+    found = corners(curves, join, points, normals)
     if not found:
         return mesh, found
     vertices, faces = mesh.vertices.copy(), mesh.faces
-    if points is not None:
-        found = [_refitted(corner, points, join) for corner in found]
     rows = np.repeat(np.arange(len(faces)), 3)
     faces_of = csr_matrix((np.ones(len(rows), dtype=np.int8), (faces.ravel(), rows)), (len(vertices), len(faces)))
     tree = kd_tree(vertices)
@@ -151,7 +165,9 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
     return extended
 
 
-def corners(curves: list[Curve], join: float) -> list[Corner]:
+def corners(
+    curves: list[Curve], join: float, points: np.ndarray | None = None, normals: np.ndarray | None = None
+) -> list[Corner]:
     """The corners where curves of ``curves`` end within ``join`` of one another.
 
     The ends are grouped as in ``core.curves.without_isolated``; around each group's centre the
@@ -161,6 +177,11 @@ def corners(curves: list[Curve], join: float) -> list[Corner]:
     offset), kept if every pair of the faces meets at ``MIN_SUPPORT`` samples or more and the
     corner lies within ``join`` of the group's centre. Closed curves (loops) have no ends; a corner
     where convex and concave edges meet (a saddle) is left out.
+
+    With the input ``points`` (n, 3), each such corner's planes are refitted to them
+    (``_refitted``); with the fit's ``normals`` (n, 3) at them as well, a group whose curves show no
+    corner gets the one its points show (``_corner_of_points``) if it lies within ``join`` of one
+    of the group's ends.
     """
     open_curves = [curve for curve in curves if not curve.closed]
     if len(open_curves) < 2:
@@ -181,7 +202,11 @@ def corners(curves: list[Curve], join: float) -> list[Corner]:
         near = np.asarray(tree.query_ball_point(centre, CORNER_REACH), dtype=np.int64)
         corner = _meeting_point(samples[near], left[near], right[near], convex[near])
         if corner is not None and np.linalg.norm(corner.point - centre) <= join:
-            found.append(corner)
+            found.append(corner if points is None else _refitted(corner, points, join))
+        elif points is not None and normals is not None:
+            corner = _corner_of_points(centre, points, normals)
+            if corner is not None and np.linalg.norm(ends[members] - corner.point, axis=1).min() <= join:
+                found.append(corner)
     return found
 
 
@@ -215,6 +240,60 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
     offsets = np.array([np.median(on[face == index] @ planes[index]) for index in range(3)])
     sign = 1.0 if convex[on_edge][0] else -1.0
     return Corner(np.linalg.solve(planes, offsets), sign * planes, sign * offsets)
+
+
+def _corner_of_points(centre: np.ndarray, points: np.ndarray, normals: np.ndarray) -> Corner | None:
+    """The corner near ``centre`` (3,) of the three largest faces among the input ``points`` (n, 3)
+    within ``_POINTS_REACH`` of it, a face being a group of their ``normals`` (n, 3, the fit's)
+    within ``SAME_FACE`` of one another (``_faces`` of ``_GROUPED`` of them), and its plane the one
+    through the mean of the points whose normal lies within ``_FLAT`` of the group's that they
+    are least far from, refitted to those within ``_REFIT_BAND`` of it (off a parallel face's
+    points). A face whose plane turns from its normals by more than ``SAME_FACE`` is a rounded
+    edge's points, a line, and is passed over. None unless three faces remain whose points
+    spread alike (``_REFIT_SPREAD``), which meet at a point (``MIN_DETERMINANT``), and whose edges
+    are all convex or all concave (each face's points inside both other planes, or outside both);
+    the planes are oriented as ``_meeting_point`` orients them."""
+    near = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= _POINTS_REACH)
+    grouped = near[np.unique(np.linspace(0, len(near) - 1, min(_GROUPED, len(near))).astype(np.int64))]
+    smallest = max(3, int(np.ceil(_REFIT_POINTS * len(grouped) / max(len(near), 1))))
+    cosine, flat = np.cos(np.radians(SAME_FACE)), np.cos(np.radians(_FLAT))
+    planes, offsets, means, spreads = [], [], [], []
+    for group in _faces(normals[grouped], smallest):
+        normal = unit(normals[grouped[group]].mean(axis=0)[None])[0]
+        face = normals[near] @ normal > flat  # off the rounding, whose points pull the plane round
+        if np.count_nonzero(face) < _REFIT_POINTS:
+            continue
+        chosen = points[near[face]]
+        for _ in range(_REFIT_PASSES):  # off the points of a parallel face nearby
+            mean = chosen.mean(axis=0)
+            variances, axes = np.linalg.eigh(np.cov((chosen - mean).T))
+            axis = axes[:, 0] if axes[:, 0] @ normal > 0 else -axes[:, 0]
+            on_plane = np.abs((chosen - mean) @ axis) < _REFIT_BAND
+            if on_plane.all() or np.count_nonzero(on_plane) < _REFIT_POINTS:
+                break
+            chosen = chosen[on_plane]
+        if axis @ normal < cosine:  # a rounded edge's points: a line, not a face
+            continue
+        planes.append(axis)
+        offsets.append(mean @ axis)
+        means.append(mean)
+        spreads.append(np.sqrt(max(variances[0], 0.0)))
+        if len(planes) == 3:
+            break
+    if len(planes) < 3 or abs(np.linalg.det(np.array(planes))) < MIN_DETERMINANT:
+        return None
+    if max(spreads) > _REFIT_SPREAD * min(spreads):
+        return None
+    face_normals, face_offsets = np.array(planes), np.array(offsets)
+    inside = face_offsets[None] - np.array(means) @ face_normals.T  # (3, 3): face i's mean inside plane j
+    others = ~np.eye(3, dtype=bool)
+    if (inside[others] > 0).all():
+        sign = 1.0
+    elif (inside[others] < 0).all():
+        sign = -1.0
+    else:
+        return None
+    return Corner(np.linalg.solve(face_normals, face_offsets), sign * face_normals, sign * face_offsets)
 
 
 def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
@@ -251,17 +330,17 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
     return Corner(point, planes, offsets)
 
 
-def _faces(normals: np.ndarray) -> list[np.ndarray]:
+def _faces(normals: np.ndarray, smallest: int = MIN_NORMALS) -> list[np.ndarray]:
     """The unit ``normals`` (n, 3) in sets within ``SAME_FACE`` of a seed, largest first: the seed
     is the normal with the most others that close, and each set is taken away before the next; sets
     of fewer than ``MIN_NORMALS`` are left out."""
     cosine = np.cos(np.radians(SAME_FACE))
     left = np.arange(len(normals))
     faces = []
-    while len(left) >= MIN_NORMALS:
+    while len(left) >= smallest:
         close = normals[left] @ normals[left].T > cosine
         seed = np.argmax(close.sum(axis=1))
-        if close[seed].sum() < MIN_NORMALS:
+        if close[seed].sum() < smallest:
             break
         faces.append(left[close[seed]])
         left = left[~close[seed]]

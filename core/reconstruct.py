@@ -183,7 +183,7 @@ def extract_outputs(
         normals = unit_normals(model, unit, should_cancel=should_cancel)
         curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
         curves = without_isolated(curves, CURVE_JOIN_GAP, CURVE_GROUP_LENGTH, CURVE_KEEP_DIHEDRAL)
-        mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit)
+        mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit, normals)
         curves = extend_to_corners(curves, corners, CURVE_JOIN_GAP, CURVE_SPACING)
         near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())
         edges = np.flatnonzero(near <= params.edge_width)

@@ -8,10 +8,20 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.corners import SNAP_RADIUS, Corner, _refitted, _uncrossed, corners, extend_to_corners, snap_corners
+from core.corners import (
+    SNAP_RADIUS,
+    Corner,
+    _corner_of_points,
+    _refitted,
+    _uncrossed,
+    corners,
+    extend_to_corners,
+    snap_corners,
+)
 from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
+from core.features import unit
 from core.intersections import crossing_faces
 from evaluation.metrics import distance_to_mesh, sample_surface
 from tests.core.test_dual import HALF, HIGH, IDENTITY, LOW, ROTATION, box, box_mesh, gradient
@@ -283,3 +293,76 @@ def test_snapping_with_the_points_puts_a_rounded_boxs_corners_back_as_well():
     assert distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces).max() < 0.005
     assert snapped.is_watertight and snapped.is_winding_consistent and snapped.volume > 0
     assert len(crossing_faces(snapped.vertices, snapped.faces, np.arange(len(snapped.faces)))) == 0
+
+
+# A wedge whose ridge (x = 0, z = 0.5, |y| <= 0.3) is as acute as the sample wedge's: its two
+# slanted faces meet at 26 degrees through the solid.
+WEDGE = trimesh.convex.convex_hull(
+    np.array([[x, y, z] for y in (-0.3, 0.3) for x, z in ((-0.233, -0.5), (0.233, -0.5), (0.0, 0.5))])
+)
+TIP = np.array([0.0, -0.3, 0.5])
+
+
+def fit_normals(mesh: trimesh.Trimesh, points: np.ndarray, rounding: float = 0.01) -> np.ndarray:
+    """Unit normals (n, 3) at ``points`` as a fit that rounds ``mesh``'s edges gives them: the
+    normal of the plane of ``mesh`` nearest to each point, and within ``rounding`` of two planes,
+    their mean."""
+    normals, offsets = mesh.face_normals, np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles[:, 0])
+    distance = np.abs(points @ normals.T - offsets)  # (n, f): to each face's plane
+    order = np.argsort(distance, axis=1)
+    first = normals[order[:, 0]]
+    second = normals[order[:, 1]]
+    same_plane = np.einsum("ij,ij->i", first, second) > 1 - 1e-9
+    rounded = ~same_plane & (distance[np.arange(len(points)), order[:, 1]] < rounding)
+    blended = first + np.where(rounded[:, None], second, 0.0)
+    return blended / np.linalg.norm(blended, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_acute_ridges_tip_is_found_from_the_points_of_its_faces(seed):
+    # Read from around the ends of the ridge's curves, which the extraction stops 0.03 or more short.
+    points = noisy_points(WEDGE, seed=seed)
+    corner = _corner_of_points(TIP + np.array([0.0, 0.04, -0.08]), points, fit_normals(WEDGE, points))
+    assert corner is not None
+    assert np.linalg.norm(corner.point - TIP) < 0.008
+    true_normals = WEDGE.face_normals[
+        np.abs(WEDGE.face_normals @ TIP - np.einsum("ij,ij->i", WEDGE.face_normals, WEDGE.triangles[:, 0])) < 1e-9
+    ]
+    angles = np.degrees(np.arccos(np.clip(corner.normals @ np.unique(np.round(true_normals, 9), axis=0).T, -1, 1)))
+    # Each plane one of the tip's three faces' (the end face, a thin triangle there, has few points).
+    assert (angles.min(axis=1) < 4.0).all()
+    # A convex corner: its planes face out, the solid inside all three.
+    assert (corner.normals @ WEDGE.center_mass < corner.offsets).all()
+    np.testing.assert_allclose(corner.normals @ corner.point, corner.offsets, atol=1e-12)
+
+
+def test_a_ridge_whose_curves_show_two_faces_gets_its_tip_from_the_points():
+    # The acute ridge comes out as two creases a strip apart (the strip's normal between the
+    # slanted faces'), stopping 0.03 short of the tip; the end face's edges are not found.
+    slant_left, slant_right = unit(np.array([[-1.0, 0.0, 0.233], [1.0, 0.0, 0.233]]))
+    strip = unit((slant_left + slant_right)[None])[0]
+    y = np.arange(-0.27, 0.0, 0.005)[:, None]
+    ridge = [
+        Curve(np.hstack([x + 0 * y, y, 0.49 + 0 * y]), np.tile(a, (len(y), 1)), np.tile(b, (len(y), 1)), 75.0, True)
+        for x, a, b in ((-0.002, slant_left, strip), (0.002, strip, slant_right))
+    ]
+    assert corners(ridge, JOIN) == []
+    points = noisy_points(WEDGE)
+    (corner,) = corners(ridge, JOIN, points, fit_normals(WEDGE, points))
+    # Read around the ends' centre, high on the ridge, where the end face is a thin triangle of
+    # few points: its plane comes out a few degrees off, and the tip about 0.01 inside it.
+    assert np.linalg.norm(corner.point - TIP) < 0.015
+
+
+def test_no_corner_from_the_points_where_convex_and_concave_edges_meet():
+    # The end (y = 0) of an L-shaped bar: its inner, concave edge (wall x = 0 over floor z = 0)
+    # meets the end face's two convex edges at the origin, a saddle.
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0.0, 0.3, (2, 3000))
+    wall = np.stack([0 * u[:1000], v[:1000], u[:1000]], 1)
+    floor = np.stack([u[1000:2000], v[1000:2000], 0 * u[1000:2000]], 1)
+    end = np.stack([u[2000:] - 0.15, 0 * u[2000:], v[2000:] - 0.15], 1)
+    end = end[(end[:, 0] < 0) | (end[:, 2] < 0)]
+    points = np.concatenate([wall, floor, end]) + rng.normal(0.0, 0.005, (len(wall) + len(floor) + len(end), 3))
+    normals = np.concatenate([np.tile(X, (len(wall), 1)), np.tile(Z, (len(floor), 1)), np.tile(-Y, (len(end), 1))])
+    assert _corner_of_points(np.array([0.02, 0.02, 0.02]), points, normals) is None
