@@ -18,6 +18,7 @@ by the fit's normals there.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 import trimesh
@@ -55,6 +56,7 @@ _REFIT_SPREAD = 1.5  # the widest spread of a plane's points off it, over the na
 # at 0.16 (docs/benchmarks.md).
 _POINTS_REACH = 0.35
 _GROUPED = 1024  # of those points, grouped by normal (its cost grows as the square of their number)
+_FACES_TRIED = 6
 _FLAT = 5.0  # degrees: a face's plane is fitted to its points whose fit normal is this near its own
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
 _UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
@@ -70,6 +72,17 @@ class Corner:
     point: np.ndarray
     normals: np.ndarray
     offsets: np.ndarray
+
+
+@dataclass
+class _Face:
+    """A face read from the input points: its plane (unit ``normal``, ``offset``), how far its
+    ``points`` (m, 3) ``spread`` off it (their standard deviation)."""
+
+    normal: np.ndarray
+    offset: float
+    spread: float
+    points: np.ndarray
 
 
 def snap_corners(
@@ -204,7 +217,7 @@ def corners(
         if corner is not None and np.linalg.norm(corner.point - centre) <= join:
             found.append(corner if points is None else _refitted(corner, points, join))
         elif points is not None and normals is not None:
-            corner = _corner_of_points(centre, points, normals)
+            corner = _corner_of_points(centre, ends[members], points, normals)
             if corner is not None and np.linalg.norm(ends[members] - corner.point, axis=1).min() <= join:
                 found.append(corner)
     return found
@@ -242,28 +255,28 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
     return Corner(np.linalg.solve(planes, offsets), sign * planes, sign * offsets)
 
 
-def _corner_of_points(centre: np.ndarray, points: np.ndarray, normals: np.ndarray) -> Corner | None:
-    """The corner near ``centre`` (3,) of the three largest faces among the input ``points`` (n, 3)
-    within ``_POINTS_REACH`` of it, a face being a group of their ``normals`` (n, 3, the fit's)
-    within ``SAME_FACE`` of one another (``_faces`` of ``_GROUPED`` of them), and its plane the one
-    through the mean of the points whose normal lies within ``_FLAT`` of the group's that they
-    are least far from, refitted to those within ``_REFIT_BAND`` of it (off a parallel face's
-    points). A face whose plane turns from its normals by more than ``SAME_FACE`` is a rounded
-    edge's points, a line, and is passed over. None unless three faces remain whose points
-    spread alike (``_REFIT_SPREAD``), which meet at a point (``MIN_DETERMINANT``), and whose edges
-    are all convex or all concave (each face's points inside both other planes, or outside both);
-    the planes are oriented as ``_meeting_point`` orients them."""
+def _corner_of_points(centre: np.ndarray, ends: np.ndarray, points: np.ndarray, normals: np.ndarray) -> Corner | None:
+    """The corner that the input ``points`` (n, 3) within ``_POINTS_REACH`` of ``centre`` (3,)
+    show nearest to the curve ``ends`` (e, 3) around it, or None.
+
+    A face is a group of the points' ``normals`` (n, 3, the fit's) within ``SAME_FACE`` of one
+    another (``_faces`` of ``_GROUPED`` of them, the ``_FACES_TRIED`` largest), and its plane the
+    one through the mean of the points whose normal lies within ``_FLAT`` of the group's that
+    they are least far from, refitted to those within ``_REFIT_BAND`` of it (off a parallel
+    face's points). A face whose plane turns from its normals by more than ``SAME_FACE`` is a
+    rounded edge's points, a line, and is passed over. Of every three faces that make a corner
+    (``_corner_of_faces``), the one nearest the ends: within the reach lie other parts' faces,
+    often larger than the corner's own."""
     near = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= _POINTS_REACH)
     grouped = near[np.unique(np.linspace(0, len(near) - 1, min(_GROUPED, len(near))).astype(np.int64))]
     smallest = max(3, int(np.ceil(_REFIT_POINTS * len(grouped) / max(len(near), 1))))
     cosine, flat = np.cos(np.radians(SAME_FACE)), np.cos(np.radians(_FLAT))
-    planes, offsets, means, spreads = [], [], [], []
-    for group in _faces(normals[grouped], smallest):
+    faces: list[_Face] = []
+    for group in _faces(normals[grouped], smallest)[:_FACES_TRIED]:
         normal = unit(normals[grouped[group]].mean(axis=0)[None])[0]
-        face = normals[near] @ normal > flat  # off the rounding, whose points pull the plane round
-        if np.count_nonzero(face) < _REFIT_POINTS:
+        chosen = points[near[normals[near] @ normal > flat]]  # off the rounding, which pulls the plane round
+        if len(chosen) < _REFIT_POINTS:
             continue
-        chosen = points[near[face]]
         for _ in range(_REFIT_PASSES):  # off the points of a parallel face nearby
             mean = chosen.mean(axis=0)
             variances, axes = np.linalg.eigh(np.cov((chosen - mean).T))
@@ -272,28 +285,45 @@ def _corner_of_points(centre: np.ndarray, points: np.ndarray, normals: np.ndarra
             if on_plane.all() or np.count_nonzero(on_plane) < _REFIT_POINTS:
                 break
             chosen = chosen[on_plane]
-        if axis @ normal < cosine:  # a rounded edge's points: a line, not a face
-            continue
-        planes.append(axis)
-        offsets.append(mean @ axis)
-        means.append(mean)
-        spreads.append(np.sqrt(max(variances[0], 0.0)))
-        if len(planes) == 3:
-            break
-    if len(planes) < 3 or abs(np.linalg.det(np.array(planes))) < MIN_DETERMINANT:
+        if axis @ normal >= cosine:  # else a rounded edge's points: a line, not a face
+            faces.append(_Face(axis, float(mean @ axis), float(np.sqrt(max(variances[0], 0.0))), chosen))
+    best: Corner | None = None
+    for triple in combinations(faces, 3):
+        corner = _corner_of_faces(triple)
+        if corner is not None and (best is None or _gap(corner, ends) < _gap(best, ends)):
+            best = corner
+    return best
+
+
+def _gap(corner: Corner, ends: np.ndarray) -> float:
+    """How far ``corner`` lies from the nearest of ``ends`` (e, 3)."""
+    return float(np.linalg.norm(ends - corner.point, axis=1).min())
+
+
+def _corner_of_faces(faces: tuple[_Face, ...]) -> Corner | None:
+    """The corner of three ``faces``, or None unless their points spread alike (``_REFIT_SPREAD``), they meet at a point
+    (``MIN_DETERMINANT``) that each face's points reach (``MIN_SUPPORT`` of them within
+    ``_REFIT_REACH``: near a tip a thin face has few), and their edges are all convex or all
+    concave (each face's points by the corner inside both other planes, or outside both); the
+    planes oriented as ``_meeting_point`` orients them."""
+    normals = np.array([face.normal for face in faces])
+    offsets = np.array([face.offset for face in faces])
+    spreads = [face.spread for face in faces]
+    if abs(np.linalg.det(normals)) < MIN_DETERMINANT or max(spreads) > _REFIT_SPREAD * min(spreads):
         return None
-    if max(spreads) > _REFIT_SPREAD * min(spreads):
-        return None
-    face_normals, face_offsets = np.array(planes), np.array(offsets)
-    inside = face_offsets[None] - np.array(means) @ face_normals.T  # (3, 3): face i's mean inside plane j
+    point = np.linalg.solve(normals, offsets)
+    inside = np.empty((3, 3))  # face i's points by the corner: how far inside plane j
+    for index, face in enumerate(faces):
+        by_corner = face.points[np.linalg.norm(face.points - point, axis=1) <= _REFIT_REACH]
+        if len(by_corner) < MIN_SUPPORT:  # a thin face near a tip has few
+            return None
+        inside[index] = np.median(offsets[None] - by_corner @ normals.T, axis=0)
     others = ~np.eye(3, dtype=bool)
     if (inside[others] > 0).all():
-        sign = 1.0
-    elif (inside[others] < 0).all():
-        sign = -1.0
-    else:
-        return None
-    return Corner(np.linalg.solve(face_normals, face_offsets), sign * face_normals, sign * face_offsets)
+        return Corner(point, normals, offsets)
+    if (inside[others] < 0).all():
+        return Corner(point, -normals, -offsets)
+    return None
 
 
 def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:

@@ -322,7 +322,8 @@ def fit_normals(mesh: trimesh.Trimesh, points: np.ndarray, rounding: float = 0.0
 def test_an_acute_ridges_tip_is_found_from_the_points_of_its_faces(seed):
     # Read from around the ends of the ridge's curves, which the extraction stops 0.03 or more short.
     points = noisy_points(WEDGE, seed=seed)
-    corner = _corner_of_points(TIP + np.array([0.0, 0.04, -0.08]), points, fit_normals(WEDGE, points))
+    centre = TIP + np.array([0.0, 0.04, -0.08])
+    corner = _corner_of_points(centre, centre[None], points, fit_normals(WEDGE, points))
     assert corner is not None
     assert np.linalg.norm(corner.point - TIP) < 0.008
     true_normals = WEDGE.face_normals[
@@ -365,4 +366,25 @@ def test_no_corner_from_the_points_where_convex_and_concave_edges_meet():
     end = end[(end[:, 0] < 0) | (end[:, 2] < 0)]
     points = np.concatenate([wall, floor, end]) + rng.normal(0.0, 0.005, (len(wall) + len(floor) + len(end), 3))
     normals = np.concatenate([np.tile(X, (len(wall), 1)), np.tile(Z, (len(floor), 1)), np.tile(-Y, (len(end), 1))])
-    assert _corner_of_points(np.array([0.02, 0.02, 0.02]), points, normals) is None
+    centre = np.array([0.02, 0.02, 0.02])
+    assert _corner_of_points(centre, centre[None], points, normals) is None
+
+
+def test_of_the_faces_the_points_show_those_meeting_nearest_the_curves_ends_make_the_corner():
+    # A box's corner at the origin (faces x, y, z = 0, each 0.2 across), and within the reach a
+    # larger face of another part, z = -0.3 facing down: more points than any of the corner's.
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-0.2, 0.0, (2, 3, 320))
+    big = np.hstack([rng.uniform(-0.4, 0.4, (2, 5000)).T, np.full((5000, 1), -0.3)])
+    faces = [
+        np.stack([0 * u[0], u[0], v[0]], 1),
+        np.stack([u[1], 0 * u[1], v[1]], 1),
+        np.stack([u[2], v[2], 0 * u[2]], 1),
+    ]
+    points = np.concatenate([*faces, big]) + rng.normal(0.0, 0.005, (960 + 5000, 3))
+    normals = np.concatenate([np.tile(X, (320, 1)), np.tile(Y, (320, 1)), np.tile(Z, (320, 1)), np.tile(-Z, (5000, 1))])
+    ends = np.array([[-0.03, 0.0, 0.0], [0.0, -0.03, 0.0], [0.0, 0.0, -0.03]])
+    corner = _corner_of_points(ends.mean(axis=0), ends, points, normals)
+    assert corner is not None
+    assert np.linalg.norm(corner.point) < 0.004
+    assert (corner.normals @ np.full(3, -0.05) < corner.offsets).all()  # the box's inside, inside all three
