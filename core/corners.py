@@ -52,11 +52,11 @@ _REFIT_SPREAD = 1.5  # the widest spread of a plane's points off it, over the na
 # a strip apart, and its end face's edges in scraps), the faces are read from the input points
 # within _POINTS_REACH of the curves' ends, grouped by the fit's normals. Wider than _REFIT_REACH:
 # two faces meeting at 26 degrees cross at a point four times as far off as their planes are,
-# and the tips of 18 fits came out 0.0045-0.0062 from the truth at 0.35 against 0.010-0.023
-# at 0.16 (docs/benchmarks.md).
+# and the wedge's ridge tips (two fits) came out 0.0046-0.0058 from the truth at 0.35 against
+# 0.0135-0.0227 at 0.16 (docs/benchmarks.md).
 _POINTS_REACH = 0.35
 _GROUPED = 1024  # of those points, grouped by normal (its cost grows as the square of their number)
-_FACES_TRIED = 6
+_FACES_TRIED = 6  # largest groups read as faces: every three of them are tried (20 at most)
 _FLAT = 5.0  # degrees: a face's plane is fitted to its points whose fit normal is this near its own
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
 _UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
@@ -95,8 +95,8 @@ def snap_corners(
     """``mesh`` with its rounded corners put back, and the corners of ``curves`` (``corners``).
 
     With the input ``points`` (n, 3, unit frame) and the fit's ``normals`` (n, 3) at them, the
-    corners are found as ``corners`` finds them with those. For each corner the nearest vertex within ``join`` goes
-    onto its point (or the next nearest, of ``_CANDIDATES``, where that would turn a face over);
+    corners are found as ``corners`` finds them with those. For each corner the nearest vertex
+    within ``join`` goes onto its point (or the next nearest, of ``_CANDIDATES``, where that would turn a face over);
     then each vertex within ``SNAP_RADIUS`` that lies inside all three faces' planes (the rounding)
     goes onto the nearest point of the faces, unless a face of it would turn over. A moved vertex
     of a face that then crosses or touches another (``core.intersections``) goes back where it
@@ -301,11 +301,11 @@ def _gap(corner: Corner, ends: np.ndarray) -> float:
 
 
 def _corner_of_faces(faces: tuple[_Face, ...]) -> Corner | None:
-    """The corner of three ``faces``, or None unless their points spread alike (``_REFIT_SPREAD``), they meet at a point
-    (``MIN_DETERMINANT``) that each face's points reach (``MIN_SUPPORT`` of them within
-    ``_REFIT_REACH``: near a tip a thin face has few), and their edges are all convex or all
-    concave (each face's points by the corner inside both other planes, or outside both); the
-    planes oriented as ``_meeting_point`` orients them."""
+    """The corner of three ``faces``, or None unless their points spread alike
+    (``_REFIT_SPREAD``), they meet at a point (``MIN_DETERMINANT``) that each face's points reach
+    (``MIN_SUPPORT`` of them within ``_REFIT_REACH``: near a tip a thin face has few), and their
+    edges are all convex or all concave (each face's points by the corner inside both other
+    planes, or outside both); the planes oriented as ``_meeting_point`` orients them."""
     normals = np.array([face.normal for face in faces])
     offsets = np.array([face.offset for face in faces])
     spreads = [face.spread for face in faces]
@@ -363,7 +363,7 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
 def _faces(normals: np.ndarray, smallest: int = MIN_NORMALS) -> list[np.ndarray]:
     """The unit ``normals`` (n, 3) in sets within ``SAME_FACE`` of a seed, largest first: the seed
     is the normal with the most others that close, and each set is taken away before the next; sets
-    of fewer than ``MIN_NORMALS`` are left out."""
+    of fewer than ``smallest`` are left out."""
     cosine = np.cos(np.radians(SAME_FACE))
     left = np.arange(len(normals))
     faces = []
