@@ -96,9 +96,10 @@ def snap_corners(
 
     With the input ``points`` (n, 3, unit frame) and the fit's ``normals`` (n, 3) at them, the
     corners are found as ``corners`` finds them with those. For each corner the nearest vertex
-    within ``join`` goes onto its point (or the next nearest, of ``_CANDIDATES``, where that would turn a face over);
-    then each vertex within ``SNAP_RADIUS`` that lies inside all three faces' planes (the rounding)
-    goes onto the nearest point of the faces, unless a face of it would turn over. A moved vertex
+    within ``join`` goes onto its point (or the next nearest, of ``_CANDIDATES``, where that would
+    turn a face over); then each vertex within ``SNAP_RADIUS`` that lies inside all three faces'
+    planes (the rounding) goes onto the nearest point of the faces, unless a face of it would turn
+    over. A moved vertex
     of a face that then crosses or touches another (``core.intersections``) goes back where it
     was: on featuretype two faces did. Returns a new mesh, same faces."""
     found = corners(curves, join, points, normals)
@@ -218,7 +219,7 @@ def corners(
             found.append(corner if points is None else _refitted(corner, points, join))
         elif points is not None and normals is not None:
             corner = _corner_of_points(centre, ends[members], points, normals)
-            if corner is not None and np.linalg.norm(ends[members] - corner.point, axis=1).min() <= join:
+            if corner is not None and _gap(corner, ends[members]) <= join:
                 found.append(corner)
     return found
 
@@ -278,15 +279,13 @@ def _corner_of_points(centre: np.ndarray, ends: np.ndarray, points: np.ndarray, 
         if len(chosen) < _REFIT_POINTS:
             continue
         for _ in range(_REFIT_PASSES):  # off the points of a parallel face nearby
-            mean = chosen.mean(axis=0)
-            variances, axes = np.linalg.eigh(np.cov((chosen - mean).T))
-            axis = axes[:, 0] if axes[:, 0] @ normal > 0 else -axes[:, 0]
-            on_plane = np.abs((chosen - mean) @ axis) < _REFIT_BAND
+            axis, offset, spread = _plane(chosen, normal)
+            on_plane = np.abs(chosen @ axis - offset) < _REFIT_BAND
             if on_plane.all() or np.count_nonzero(on_plane) < _REFIT_POINTS:
                 break
             chosen = chosen[on_plane]
         if axis @ normal >= cosine:  # else a rounded edge's points: a line, not a face
-            faces.append(_Face(axis, float(mean @ axis), float(np.sqrt(max(variances[0], 0.0))), chosen))
+            faces.append(_Face(axis, offset, spread, chosen))
     best: Corner | None = None
     for triple in combinations(faces, 3):
         corner = _corner_of_faces(triple)
@@ -344,13 +343,10 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
             on_face = (np.abs(inside[:, index]) < _REFIT_BAND) & (inside[:, others] > PLANE_BAND).all(axis=1)
             if np.count_nonzero(on_face) < _REFIT_POINTS:
                 return corner
-            chosen = near[on_face]
-            mean = chosen.mean(axis=0)
-            variances, axes = np.linalg.eigh(np.cov((chosen - mean).T))  # variances ascending
-            normal = axes[:, 0] if axes[:, 0] @ planes[index] > 0 else -axes[:, 0]
+            normal, offset, spread = _plane(near[on_face], planes[index])
             refit_normals.append(normal)
-            refit_offsets.append(mean @ normal)
-            spreads.append(np.sqrt(max(variances[0], 0.0)))
+            refit_offsets.append(offset)
+            spreads.append(spread)
         planes, offsets = np.array(refit_normals), np.array(refit_offsets)
     if max(spreads) > _REFIT_SPREAD * min(spreads) or abs(np.linalg.det(planes)) < MIN_DETERMINANT:
         return corner
@@ -358,6 +354,16 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
     if np.linalg.norm(point - corner.point) > join:
         return corner
     return Corner(point, planes, offsets)
+
+
+def _plane(points: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The plane of ``points`` (m, 3): through their mean, along the axis they spread least on
+    (its unit normal, turned to the side of ``towards`` (3,)), its offset, and their spread off
+    it (standard deviation)."""
+    mean = points.mean(axis=0)
+    variances, axes = np.linalg.eigh(np.cov((points - mean).T))  # variances ascending
+    normal = axes[:, 0] if axes[:, 0] @ towards > 0 else -axes[:, 0]
+    return normal, float(mean @ normal), float(np.sqrt(max(variances[0], 0.0)))
 
 
 def _faces(normals: np.ndarray, smallest: int = MIN_NORMALS) -> list[np.ndarray]:
