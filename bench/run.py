@@ -255,7 +255,7 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     path = fits / f"{key}.pt" if fits is not None else None
     if path is not None and path.exists():
         saved = torch.load(path, weights_only=True)
-        model = ImplicitNetwork(params.width, params.depth, params.beta)
+        model = ImplicitNetwork(params.width, params.depth, params.beta, features=params.features)
         model.load_state_dict(saved["state"])
         return model, float(saved["fit_seconds"])
     started = time.perf_counter()

@@ -80,7 +80,14 @@ def fit(
     """
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
-        model = ImplicitNetwork(params.width, params.depth, params.beta, generator=generator)
+        model = ImplicitNetwork(
+            params.width,
+            params.depth,
+            params.beta,
+            generator=generator,
+            features=params.features,
+            frequency=params.frequency,
+        )
     points = points[fit_rows(len(points), params.seed)]
     cloud = torch.as_tensor(points, dtype=torch.float32)
     # One tree and one pass of neighbour queries serve the local scales and the free-space map.

@@ -45,7 +45,15 @@ class ImplicitNetwork(nn.Module):
 
     ``depth`` hidden layers of ``width`` units with softplus_β activations; geometric
     initialisation (Atzmon & Lipman, SAL) makes f(x) ≈ |x| - radius at the start, negative inside.
+    With ``features`` > 0 the first layer reads, besides x, random Fourier features (Tancik et
+    al.): sin(b·x) and cos(b·x) for ``features`` directions b drawn with a spread of ``frequency``
+    cycles per unit. Each is divided by |b|, so that none rises faster than x does: Adam moves
+    every weight by about its learning rate a step, and a feature of amplitude 1 took as much of
+    that random walk as x, making every face wavy (the cube's normals 7.9° instead of 2.5°).
     """
+
+    frequencies: Tensor
+    amplitudes: Tensor
 
     def __init__(
         self,
@@ -54,10 +62,12 @@ class ImplicitNetwork(nn.Module):
         beta: float = 100.0,
         radius: float = 0.4,
         generator: torch.Generator | None = None,
+        features: int = 0,
+        frequency: float = 2.0,
     ):
         super().__init__()
         self.beta = float(beta)
-        sizes = [3] + [width] * depth + [1]
+        sizes = [3 + 2 * features] + [width] * depth + [1]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         with torch.no_grad():
             for layer in self.layers[:-1]:
@@ -66,12 +76,38 @@ class ImplicitNetwork(nn.Module):
             last = self.layers[-1]
             nn.init.normal_(last.weight, math.sqrt(math.pi / last.in_features), 1e-4, generator=generator)
             nn.init.constant_(last.bias, -radius)
+            # The Fourier features start with no weight, so that f starts as the same sphere.
+            self.layers[0].weight[:, 3:] = 0.0
+        # (features, 3): the angular frequencies b of the features sin(b·x)/|b|, cos(b·x)/|b|.
+        directions = torch.randn(features, 3, generator=generator)
+        self.register_buffer("frequencies", 2 * math.pi * frequency * directions)
+        self.register_buffer("amplitudes", 1 / self.frequencies.norm(dim=1))
+
+    def encode(self, x: Tensor) -> Tensor:
+        """The first layer's input γ(x) (n, 3 + 2 features): x, sin(b·x)/|b|, cos(b·x)/|b|."""
+        if not len(self.frequencies):
+            return x
+        phase = x @ self.frequencies.t()
+        return torch.cat([x, self.amplitudes * torch.sin(phase), self.amplitudes * torch.cos(phase)], 1)
+
+    def _encode_stacked(self, x: Tensor) -> Tensor:
+        """Stacked rows [γ (n); ∂γ/∂x_k (3n); Δγ (n)] of the encoding at the rows of ``x``:
+        ∂ sin(b·x)/∂x_k = cos(b·x) b_k, Δ sin(b·x) = -|b|² sin(b·x)."""
+        n = len(x)
+        b = self.frequencies
+        phase = x @ b.t()
+        norm2 = b.square().sum(1)
+        sin, cos = torch.sin(phase) * self.amplitudes, torch.cos(phase) * self.amplitudes
+        eye = torch.eye(3, dtype=x.dtype)
+        jac = [torch.cat([eye[k].expand(n, 3), cos * b[:, k], -sin * b[:, k]], 1) for k in range(3)]
+        lap = torch.cat([torch.zeros_like(x), -sin * norm2, -cos * norm2], 1)
+        return torch.cat([torch.cat([x, sin, cos], 1), *jac, lap])
 
     def forward(self, x: Tensor) -> Tensor:
         """f at the rows of ``x`` (n, 3): shape (n,)."""
         beta = self.beta
         first, hidden, last = self.layers[0], self.layers[1:-1], self.layers[-1]
-        h = _kernels.softplus(F.linear(x, first.weight * beta, first.bias * beta))
+        h = _kernels.softplus(F.linear(self.encode(x), first.weight * beta, first.bias * beta))
         for layer in hidden:
             h = _kernels.softplus(F.linear(h, layer.weight, layer.bias * beta))
         return F.linear(h, last.weight / beta, last.bias).squeeze(-1)
@@ -107,10 +143,14 @@ class ImplicitNetwork(nn.Module):
         dtype = matmul_dtype or x.dtype
         first, hidden, last = self.layers[0], self.layers[1:-1], self.layers[-1]
 
-        # First layer: u = β(W x + b), so its Jacobian is βW for every point and its Laplacian 0.
         weight = first.weight * beta
-        u = F.linear(x, weight, first.bias * beta)
-        stacked = _FirstLayer.apply(u, weight.t(), dtype)
+        if len(self.frequencies):
+            # On the encoding, the first layer is a hidden one (in float32: its input is x).
+            stacked = _HiddenLayer.apply(self._encode_stacked(x), weight, first.bias * beta, n).to(dtype)
+        else:
+            # First layer: u = β(W x + b), so its Jacobian is βW for every point and its Laplacian 0.
+            u = F.linear(x, weight, first.bias * beta)
+            stacked = _FirstLayer.apply(u, weight.t(), dtype)
         for layer in hidden:
             stacked = _HiddenLayer.apply(stacked, layer.weight, layer.bias * beta, n)
 
@@ -132,7 +172,7 @@ class ImplicitNetwork(nn.Module):
         dtype = matmul_dtype or x.dtype
         first, hidden, last = self.layers[0], self.layers[1:-1], self.layers[-1]
         weight = first.weight * beta
-        u = F.linear(x, weight, first.bias * beta)
+        u = F.linear(self.encode(x), weight, first.bias * beta)
         slopes = [torch.sigmoid(u)]
         h = _softplus(u)
         for layer in hidden:
@@ -144,7 +184,14 @@ class ImplicitNetwork(nn.Module):
         back = slopes.pop() * (last.weight / beta)
         for layer in reversed(hidden):
             back = _linear(back, layer.weight.t(), None, dtype) * slopes.pop()
-        return f, back @ weight
+        back = back @ weight  # ∂f/∂γ (n, 3 + 2 features)
+        if not len(self.frequencies):
+            return f, back
+        # Through the encoding: ∂sin(Bx)/∂x = cos(Bx) B, ∂cos(Bx)/∂x = -sin(Bx) B.
+        m = len(self.frequencies)
+        phase = x @ self.frequencies.t()
+        through = back[:, 3 : 3 + m] * torch.cos(phase) - back[:, 3 + m :] * torch.sin(phase)
+        return f, back[:, :3] + through @ (self.frequencies * self.amplitudes[:, None])
 
 
 def _linear(x: Tensor, weight: Tensor, bias: Tensor | None, dtype: torch.dtype) -> Tensor:
@@ -162,7 +209,9 @@ def derivatives_autograd(model: ImplicitNetwork, x: Tensor, create_graph: bool =
     that the reference shares no code with the fast paths.
     """
     x = x.detach().requires_grad_(True)
-    h = x
+    phase = x @ model.frequencies.t()
+    amplitude = model.amplitudes
+    h = torch.cat([x, amplitude * torch.sin(phase), amplitude * torch.cos(phase)], 1)
     for layer in model.layers[:-1]:
         h = F.softplus(F.linear(h, layer.weight, layer.bias), model.beta, _SOFTPLUS_THRESHOLD)
     f = F.linear(h, model.layers[-1].weight, model.layers[-1].bias).squeeze(-1)

@@ -78,6 +78,15 @@ class FitParams(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of initialisation and sampling")
     width: int = Field(256, ge=16, le=1024, description="hidden units per layer")
     depth: int = Field(4, ge=1, le=12, description="hidden layers")
+    features: int = Field(
+        0,
+        ge=0,
+        le=256,
+        description="random Fourier features of x that the network also reads (0: x alone; 32 carves small pockets)",
+    )
+    frequency: float = Field(
+        2.0, gt=0, le=64, description="spread of the Fourier features' frequencies (cycles per unit, normalised frame)"
+    )
     beta: float = Field(200.0, gt=0, le=1e4, description="softplus sharpness (IGR uses 100)")
     batch_points: int = Field(1024, ge=64, le=65_536, description="input points per step")
     residual_share: float = Field(

@@ -18,6 +18,8 @@ from core.network import ImplicitNetwork, derivatives_autograd
 
 # (depth, width, beta): depth 1 has no hidden-to-hidden layer, so it runs first_activation only.
 ARCHITECTURES = [(1, 32, 1.0), (1, 24, 100.0), (2, 16, 100.0), (2, 40, 1.0), (4, 24, 100.0), (4, 16, 1.0)]
+# (depth, width, beta, Fourier features): the first layer reads the encoding as a hidden layer does.
+ENCODED = [(1, 16, 100.0, 3), (2, 24, 200.0, 8), (4, 16, 1.0, 5)]
 N_ROWS = 50
 SUBSET = 17
 LAPLACIAN_ROWS = {"all": None, "subset": SUBSET, "none": 0}
@@ -37,10 +39,11 @@ def kernels(request, monkeypatch):
         assert shared._functions, "the compiled kernels were not used"
 
 
-def random_network(depth, width, beta, seed=0, dtype=torch.float64) -> ImplicitNetwork:
-    """A geometrically initialised network whose weights and biases are then perturbed at random."""
+def random_network(depth, width, beta, seed=0, dtype=torch.float64, features=0) -> ImplicitNetwork:
+    """A geometrically initialised network whose weights and biases are then perturbed at random
+    (the Fourier features' weights too, which start at zero)."""
     generator = torch.Generator().manual_seed(seed)
-    model = ImplicitNetwork(width, depth, beta, generator=generator).to(dtype)
+    model = ImplicitNetwork(width, depth, beta, generator=generator, features=features, frequency=2.0).to(dtype)
     with torch.no_grad():
         for parameter in model.parameters():
             scale = parameter.square().mean().sqrt().item() or 0.1
@@ -54,7 +57,8 @@ def random_points(n=N_ROWS, seed=1, dtype=torch.float64) -> torch.Tensor:
 
 
 def as_double(model: ImplicitNetwork) -> ImplicitNetwork:
-    copy = ImplicitNetwork(model.layers[0].out_features, len(model.layers) - 1, model.beta).double()
+    features = len(model.frequencies)
+    copy = ImplicitNetwork(model.layers[0].out_features, len(model.layers) - 1, model.beta, features=features).double()
     copy.load_state_dict({name: value.double() for name, value in model.state_dict().items()})
     return copy
 
@@ -100,6 +104,40 @@ def check_against_reference(model, x, rows, tol_values, tol_weights):
 def test_derivatives_match_autograd_float64(kernels, depth, width, beta, rows):
     model = random_network(depth, width, beta)
     check_against_reference(model, random_points(), rows, tol_values=1e-8, tol_weights=1e-8)
+
+
+@pytest.mark.parametrize("rows", LAPLACIAN_ROWS.values(), ids=LAPLACIAN_ROWS.keys())
+@pytest.mark.parametrize("depth, width, beta, features", ENCODED)
+def test_derivatives_through_fourier_features_match_autograd_float64(kernels, depth, width, beta, features, rows):
+    model = random_network(depth, width, beta, features=features)
+    check_against_reference(model, random_points(), rows, tol_values=1e-8, tol_weights=1e-8)
+
+
+@pytest.mark.parametrize("depth, width, beta, features", ENCODED)
+def test_reverse_mode_gradient_through_fourier_features_matches_autograd_float64(depth, width, beta, features):
+    model = random_network(depth, width, beta, features=features)
+    x = random_points()
+    f, grad = model.gradient(x)
+    f_ref, grad_ref, _ = derivatives_autograd(as_double(model), x)
+    assert relative(f, f_ref) <= 1e-12
+    assert relative(grad, grad_ref) <= 1e-12
+    torch.testing.assert_close(model(x), f_ref, rtol=0, atol=1e-12)
+
+
+def test_fourier_features_start_with_no_weight_so_the_initial_sphere_is_the_same():
+    """Whatever the frequencies, the initial f is the geometric initialisation's."""
+    low, high = (
+        ImplicitNetwork(32, 2, 100.0, generator=torch.Generator().manual_seed(4), features=8, frequency=q)
+        for q in (1.0, 8.0)
+    )
+    x, _, _ = shell_points(200)
+    with torch.no_grad():
+        assert not torch.equal(low.frequencies, high.frequencies)
+        torch.testing.assert_close(low(x), high(x), rtol=0, atol=0)
+        assert low.encode(x).shape == (200, 3 + 16)
+    # Each feature rises at most as fast as x does: sin(b·x)/|b| has slope at most 1.
+    features = low.encode(x)[:, 3:]
+    assert features.abs().max() <= (1 / low.frequencies.norm(dim=1)).max() + 1e-6
 
 
 @pytest.mark.parametrize("rows", LAPLACIAN_ROWS.values(), ids=LAPLACIAN_ROWS.keys())
