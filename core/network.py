@@ -187,7 +187,7 @@ class ImplicitNetwork(nn.Module):
         back = back @ weight  # ∂f/∂γ (n, 3 + 2 features)
         if not len(self.frequencies):
             return f, back
-        # Through the encoding: ∂sin(Bx)/∂x = cos(Bx) B, ∂cos(Bx)/∂x = -sin(Bx) B.
+        # Through the encoding: ∂(sin(b·x)/|b|)/∂x = cos(b·x) b/|b|, ∂(cos(b·x)/|b|)/∂x = -sin(b·x) b/|b|.
         m = len(self.frequencies)
         phase = x @ self.frequencies.t()
         through = back[:, 3 : 3 + m] * torch.cos(phase) - back[:, 3 + m :] * torch.sin(phase)
