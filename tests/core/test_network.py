@@ -135,7 +135,7 @@ def test_fourier_features_start_with_no_weight_so_the_initial_sphere_is_the_same
         assert not torch.equal(low.frequencies, high.frequencies)
         torch.testing.assert_close(low(x), high(x), rtol=0, atol=0)
         assert low.encode(x).shape == (200, 3 + 16)
-    # Each feature rises at most as fast as x does: sin(b·x)/|b| has slope at most 1.
+    # Each feature is divided by its |b|, so that none rises faster than x (slope at most 1).
     features = low.encode(x)[:, 3:]
     assert features.abs().max() <= (1 / low.frequencies.norm(dim=1)).max() + 1e-6
 
