@@ -53,7 +53,6 @@ class ImplicitNetwork(nn.Module):
     """
 
     frequencies: Tensor
-    amplitudes: Tensor
 
     def __init__(
         self,
@@ -81,23 +80,26 @@ class ImplicitNetwork(nn.Module):
         # (features, 3): the angular frequencies b of the features sin(b·x)/|b|, cos(b·x)/|b|.
         directions = torch.randn(features, 3, generator=generator)
         self.register_buffer("frequencies", 2 * math.pi * frequency * directions)
-        self.register_buffer("amplitudes", 1 / self.frequencies.norm(dim=1))
+
+    def _waves(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """sin(b·x)/|b| and cos(b·x)/|b| at the rows of ``x``: each (n, features)."""
+        phase = x @ self.frequencies.t()
+        amplitude = self.frequencies.norm(dim=1).reciprocal()
+        return torch.sin(phase) * amplitude, torch.cos(phase) * amplitude
 
     def encode(self, x: Tensor) -> Tensor:
         """The first layer's input γ(x) (n, 3 + 2 features): x, sin(b·x)/|b|, cos(b·x)/|b|."""
         if not len(self.frequencies):
             return x
-        phase = x @ self.frequencies.t()
-        return torch.cat([x, self.amplitudes * torch.sin(phase), self.amplitudes * torch.cos(phase)], 1)
+        return torch.cat([x, *self._waves(x)], 1)
 
     def _encode_stacked(self, x: Tensor) -> Tensor:
         """Stacked rows [γ (n); ∂γ/∂x_k (3n); Δγ (n)] of the encoding at the rows of ``x``:
         ∂ sin(b·x)/∂x_k = cos(b·x) b_k, Δ sin(b·x) = -|b|² sin(b·x)."""
         n = len(x)
         b = self.frequencies
-        phase = x @ b.t()
         norm2 = b.square().sum(1)
-        sin, cos = torch.sin(phase) * self.amplitudes, torch.cos(phase) * self.amplitudes
+        sin, cos = self._waves(x)
         eye = torch.eye(3, dtype=x.dtype)
         jac = [torch.cat([eye[k].expand(n, 3), cos * b[:, k], -sin * b[:, k]], 1) for k in range(3)]
         lap = torch.cat([torch.zeros_like(x), -sin * norm2, -cos * norm2], 1)
@@ -172,7 +174,8 @@ class ImplicitNetwork(nn.Module):
         dtype = matmul_dtype or x.dtype
         first, hidden, last = self.layers[0], self.layers[1:-1], self.layers[-1]
         weight = first.weight * beta
-        u = F.linear(self.encode(x), weight, first.bias * beta)
+        waves = self._waves(x) if len(self.frequencies) else None
+        u = F.linear(x if waves is None else torch.cat([x, *waves], 1), weight, first.bias * beta)
         slopes = [torch.sigmoid(u)]
         h = _softplus(u)
         for layer in hidden:
@@ -185,13 +188,13 @@ class ImplicitNetwork(nn.Module):
         for layer in reversed(hidden):
             back = _linear(back, layer.weight.t(), None, dtype) * slopes.pop()
         back = back @ weight  # ∂f/∂γ (n, 3 + 2 features)
-        if not len(self.frequencies):
+        if waves is None:
             return f, back
-        # Through the encoding: ∂(sin(b·x)/|b|)/∂x = cos(b·x) b/|b|, ∂(cos(b·x)/|b|)/∂x = -sin(b·x) b/|b|.
-        m = len(self.frequencies)
-        phase = x @ self.frequencies.t()
-        through = back[:, 3 : 3 + m] * torch.cos(phase) - back[:, 3 + m :] * torch.sin(phase)
-        return f, back[:, :3] + through @ (self.frequencies * self.amplitudes[:, None])
+        # Through the encoding: ∂(sin(b·x)/|b|)/∂x = (cos(b·x)/|b|) b, ∂(cos(b·x)/|b|)/∂x = -(sin(b·x)/|b|) b.
+        sin, cos = waves
+        m = sin.shape[1]
+        through = back[:, 3 : 3 + m] * cos - back[:, 3 + m :] * sin
+        return f, back[:, :3] + through @ self.frequencies
 
 
 def _linear(x: Tensor, weight: Tensor, bias: Tensor | None, dtype: torch.dtype) -> Tensor:
@@ -210,7 +213,7 @@ def derivatives_autograd(model: ImplicitNetwork, x: Tensor, create_graph: bool =
     """
     x = x.detach().requires_grad_(True)
     phase = x @ model.frequencies.t()
-    amplitude = model.amplitudes
+    amplitude = 1 / model.frequencies.norm(dim=1)
     h = torch.cat([x, amplitude * torch.sin(phase), amplitude * torch.cos(phase)], 1)
     for layer in model.layers[:-1]:
         h = F.softplus(F.linear(h, layer.weight, layer.bias), model.beta, _SOFTPLUS_THRESHOLD)
