@@ -99,9 +99,8 @@ def snap_corners(
     within ``join`` goes onto its point (or the next nearest, of ``_CANDIDATES``, where that would
     turn a face over); then each vertex within ``SNAP_RADIUS`` that lies inside all three faces'
     planes (the rounding) goes onto the nearest point of the faces, unless a face of it would turn
-    over. A moved vertex
-    of a face that then crosses or touches another (``core.intersections``) goes back where it
-    was: on featuretype two faces did. Returns a new mesh, same faces."""
+    over. A moved vertex of a face that then crosses or touches another (``core.intersections``)
+    goes back where it was: on featuretype two faces did. Returns a new mesh, same faces."""
     found = corners(curves, join, points, normals)
     if not found:
         return mesh, found
