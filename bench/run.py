@@ -255,7 +255,9 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     path = fits / f"{key}.pt" if fits is not None else None
     if path is not None and path.exists():
         saved = torch.load(path, weights_only=True)
-        model = ImplicitNetwork(params.width, params.depth, params.beta, features=params.features)
+        # The network has Fourier features where its fit read them (encoding "auto" decides in the fit).
+        features = (saved["state"]["layers.0.weight"].shape[1] - 3) // 2
+        model = ImplicitNetwork(params.width, params.depth, params.beta, features=features)
         model.load_state_dict(saved["state"])
         return model, float(saved["fit_seconds"])
     started = time.perf_counter()

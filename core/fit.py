@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import cast
 
@@ -73,23 +75,77 @@ def fit(
     (``draw_batch``; a ``residual_share`` of the points in proportion to their |f| when last
     drawn), computes ``step_loss`` and takes one Adam step, with the learning rate decaying
     geometrically. The first ``EAGER_STEPS`` steps run the eager kernels while the compiled ones are
-    made in a background thread. Last, f is shifted so that its median at the points is 0 (``centre_level``).
+    made in a background thread. With ``encoding="auto"`` the network starts without Fourier
+    features and, in a fit of at least ``CHECKED_ITERATIONS`` steps whose residuals at its
+    ``CHECK_SHARE`` have a heavier tail than noise (``residual_tail`` above ``TAIL_LIMIT``) that
+    reaches past ``MISS_FLOOR``, starts again with ``features`` of them: the same fit as
+    ``encoding="always"``, after those extra steps.
+    Last, f is shifted so that its median at the points is 0 (``centre_level``).
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
     neighbour queries and the free-space map take seconds); when it returns True, ``Cancelled``
     is raised.
     """
-    generator = torch.Generator().manual_seed(params.seed)
-    with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
-        model = ImplicitNetwork(
-            params.width,
-            params.depth,
-            params.beta,
-            generator=generator,
-            features=params.features,
-            frequency=params.frequency,
-        )
     points = points[fit_rows(len(points), params.seed)]
     cloud = torch.as_tensor(points, dtype=torch.float32)
+    setup = _set_up(points, params, should_cancel)
+    level_points = cloud[torch.as_tensor(subsample_rows(len(cloud), LEVEL_POINTS, params.seed))]
+    features = params.features if params.encoding == "always" else 0
+    check = None
+    if params.encoding == "auto" and params.features > 0 and params.iterations >= CHECKED_ITERATIONS:
+        check = _Check(round(CHECK_SHARE * params.iterations), level_points)
+    model = _train(cloud, setup, params, features, progress, should_cancel, check)
+    if model is None:
+        assert check is not None
+        again = _offset(progress, check.step) if progress is not None else None
+        model = _train(cloud, setup, params, params.features, again, should_cancel)
+        assert model is not None
+    centre_level(model, level_points)
+    return model
+
+
+# The share of the steps after which ``encoding="auto"`` reads the residuals. By then every sample
+# CAD shape's fit is down to its noise (below), featuretype's counterbores are capped for good, and
+# a restart costs half a fit. At a sixth of the steps (300 of 1,800) the fits' tails had not
+# settled: featuretype's 99th percentile was 3.9-4.6 medians at three seeds, a CAD block's up to 4.0.
+CHECK_SHARE = 0.5
+
+# The fewest steps of a fit that ``encoding="auto"`` checks: the limit below was set on fits of the
+# default 1,800 steps, and shorter ones are still above the noise at half of them (a 150-step fit of
+# the cube passed it).
+CHECKED_ITERATIONS = 1800
+
+# ``residual_tail`` above which the fit starts again with Fourier features. Noise that is normal
+# along the surface gives 4.88 (3.29 σ over 0.674 σ). Halfway through default fits of the nine
+# sample shapes, their variants and eleven public CAD parts and scans (docs/benchmarks.md), the
+# clouds a plain fit follows gave 4.13-5.35 (box_hole's 4,096 points the highest); featuretype
+# 6.10-6.38, a housing with 24 holes 7.56-7.66, the teapot 5.78-6.93, an angled block 5.56-6.26.
+TAIL_LIMIT = 5.5
+# ... and the 99.9th percentile of |f - median f| that must pass this too (unit frame: three cells
+# of the default grid). A cloud without noise has a tail of the fit's own rounding at every edge
+# (the cube's ratio 7.2), but it reaches only 0.008-0.013, which the mesh barely shows, and
+# the features gave such clouds no better surface (docs/benchmarks.md): not worth half a fit more.
+MISS_FLOOR = 0.02
+
+
+@dataclass(frozen=True)
+class _Check:
+    """When ``_train`` reads the residuals (the step), and where (the points, (n, 3))."""
+
+    step: int
+    points: Tensor
+
+
+@dataclass(frozen=True)
+class _SetUp:
+    """What every step of a fit reads besides the network: the points' local scales (n,), the
+    free-space map, and the normal term's normals with whether each is oriented."""
+
+    scales: Tensor
+    free_space: FreeSpace | None
+    cloud_normals: tuple[Tensor, Tensor] | None
+
+
+def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | None) -> _SetUp:
     # One tree and one pass of neighbour queries serve the local scales and the free-space map.
     tree = build_tree(points, should_cancel)
     distances = neighbour_distances(tree, points, [1, 4, min(50, len(points) - 1)], should_cancel)
@@ -108,6 +164,26 @@ def fit(
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
+    return _SetUp(scales, free_space, cloud_normals)
+
+
+def _train(
+    cloud: Tensor,
+    setup: _SetUp,
+    params: FitParams,
+    features: int,
+    progress: ProgressCallback | None,
+    should_cancel: CancelCheck | None,
+    check: _Check | None = None,
+) -> ImplicitNetwork | None:
+    """A network with ``features`` Fourier features, trained on ``cloud`` (n, 3) for
+    ``params.iterations`` steps; None when ``check`` finds its residuals' tail past ``TAIL_LIMIT``
+    and ``MISS_FLOOR`` at its step (the steps after it are not taken)."""
+    generator = torch.Generator().manual_seed(params.seed)
+    with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
+        model = ImplicitNetwork(
+            params.width, params.depth, params.beta, generator=generator, features=features, frequency=params.frequency
+        )
     matmul_dtype = matmul_dtype_for(params.precision)
     batch_size = min(params.batch_points, len(cloud))
     early_size = max(batch_size // 2, 1) if len(cloud) >= HALF_BATCH_MIN_POINTS else batch_size
@@ -125,12 +201,12 @@ def fit(
     def take_step(iteration: int) -> None:
         check_cancel(should_cancel)
         size = batch_size if iteration > HALF_BATCH_SHARE * params.iterations else early_size
-        batch, samples, rows = draw_batch(cloud, scales, size, generator, residuals, params.residual_share)
+        batch, samples, rows = draw_batch(cloud, setup.scales, size, generator, residuals, params.residual_share)
         batch_normals = None
-        if cloud_normals is not None and iteration <= NORMAL_TERM_SHARE * params.iterations:
-            batch_normals = (cloud_normals[0][rows], cloud_normals[1][rows])
+        if setup.cloud_normals is not None and iteration <= NORMAL_TERM_SHARE * params.iterations:
+            batch_normals = (setup.cloud_normals[0][rows], setup.cloud_normals[1][rows])
         loss, terms, edges, batch_residuals = step_loss(
-            model, batch, samples, params, free_space, matmul_dtype, batch_normals
+            model, batch, samples, params, setup.free_space, matmul_dtype, batch_normals
         )
         residuals[rows] = batch_residuals
 
@@ -152,17 +228,52 @@ def fit(
                 )
             )
 
+    def too_far(iteration: int) -> bool:
+        if check is None or iteration != check.step:
+            return False
+        tail, reach = residual_tail(model, check.points)
+        return tail > TAIL_LIMIT and reach > MISS_FLOOR
+
     warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
     try:
         with eager_kernels():
             for iteration in range(1, min(EAGER_STEPS, params.iterations) + 1):
                 take_step(iteration)
+                if too_far(iteration):
+                    return None
     finally:  # a cancelled fit leaves no compiler thread behind to race the next import or the exit
         finish_warming_kernels()
     for iteration in range(EAGER_STEPS + 1, params.iterations + 1):
         take_step(iteration)
-    centre_level(model, cloud[torch.as_tensor(subsample_rows(len(cloud), LEVEL_POINTS, params.seed))])
+        if too_far(iteration):
+            return None
     return model
+
+
+def _offset(progress: ProgressCallback, steps: int) -> ProgressCallback:
+    """``progress`` with ``steps`` more done and to do: a fit started again reports the steps
+    it already took, so that its progress never goes back."""
+
+    def report(update: Progress) -> None:
+        progress(update.model_copy(update={"iteration": update.iteration + steps, "total": update.total + steps}))
+
+    return report
+
+
+@torch.no_grad()
+def residual_tail(model: Callable[[Tensor], Tensor], points: Tensor) -> tuple[float, float]:
+    """How far the largest residuals at ``points`` (n, 3) reach beyond the typical one, the
+    99.9th percentile of |f - median f| over its median, and that percentile itself.
+
+    Where f follows the points to their noise, this is the noise's own ratio (4.88 for noise that
+    is normal along the surface); points that f does not reach (a pocket it caps, a rib it
+    rounds off) lengthen the tail. The ratio is the noise's scale-free: a cloud twice as noisy
+    gives the same one.
+    """
+    f = model(points)
+    residual = (f - f.median()).abs()
+    high, typical = torch.quantile(residual, torch.tensor([0.999, 0.5])).tolist()
+    return high / max(typical, 1e-12), high
 
 
 @torch.no_grad()

@@ -66,6 +66,7 @@ class ImplicitNetwork(nn.Module):
     ):
         super().__init__()
         self.beta = float(beta)
+        self.features = features
         sizes = [3 + 2 * features] + [width] * depth + [1]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         with torch.no_grad():

@@ -79,13 +79,20 @@ class FitParams(BaseModel):
     width: int = Field(256, ge=16, le=1024, description="hidden units per layer")
     depth: int = Field(4, ge=1, le=12, description="hidden layers")
     features: int = Field(
-        0,
+        32,
         ge=0,
         le=256,
-        description="random Fourier features of x that the network also reads (0: x alone; 32 carves small pockets)",
+        description="random Fourier features of x that the network reads when it reads them (see encoding; 0: none)",
     )
     frequency: float = Field(
         2.0, gt=0, le=64, description="spread of the Fourier features' frequencies (cycles per unit, normalised frame)"
+    )
+    encoding: Literal["auto", "always", "never"] = Field(
+        "auto",
+        description=(
+            "when the network reads the Fourier features: auto starts without them and starts again with them"
+            " where the residuals halfway have a heavier tail than noise (a pocket capped, detail missed)"
+        ),
     )
     beta: float = Field(200.0, gt=0, le=1e4, description="softplus sharpness (IGR uses 100)")
     batch_points: int = Field(1024, ge=64, le=65_536, description="input points per step")

@@ -178,6 +178,8 @@ def extract_outputs(
         progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
     low, high = unit.min(axis=0), unit.max(axis=0)
     mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
+    # Whether the fit read Fourier features (encoding "auto" decides in the fit), and how many.
+    stats["fourier_features"] = model.features
     curves: list[Curve] = []
     if params.extraction == "sharp":
         normals = unit_normals(model, unit, should_cancel=should_cancel)

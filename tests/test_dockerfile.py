@@ -18,7 +18,9 @@ configure(compile=True)
 from core.params import FitParams
 from core.reconstruct import reconstruct
 from evaluation.shapes import sample_shape
-reconstruct(sample_shape('sphere', n_points=3000, seed=5).points, FitParams(iterations=3, resolution=40))
+points = sample_shape('sphere', n_points=3000, seed=5).points
+for encoding in ('never', 'always'):
+    reconstruct(points, FitParams(iterations=3, resolution=40, encoding=encoding))
 print(counters["inductor"]["fxgraph_cache_hit"], counters["inductor"]["fxgraph_cache_miss"])
 """
 

@@ -156,10 +156,13 @@ def prepare_torch(settings: Settings) -> None:
 
     if settings.worker_warmup:
         log.info("warming up (torch.compile of the network's kernels)...")
-        try:
-            reconstruct(sample_shape("sphere", n_points=400).points, FitParams(iterations=2, resolution=32))
-        except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
-            log.info("warm-up fit: %s", error)
+        # Both networks a job may train: without Fourier features, and with them (a fit that starts again).
+        for encoding in ("never", "always"):
+            try:
+                params = FitParams(iterations=2, resolution=32, encoding=encoding)
+                reconstruct(sample_shape("sphere", n_points=400).points, params)
+            except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
+                log.info("warm-up fit: %s", error)
     log.info("torch ready: %d thread(s)", torch.get_num_threads())
 
 

@@ -26,11 +26,22 @@ from core.sampling import FreeSpace, eikonal_samples, local_scales
 from evaluation.metrics import edge_scores, normal_errors, surface_distances
 from evaluation.shapes import sample_shape
 
-SMALL = {"width": 64, "depth": 2, "batch_points": 256, "resolution": 32}
+# The loop's tests and the quality tests fit the plain network ("never"): whether a fit restarts
+# with Fourier features is read off residuals whose limit was set on the default network and
+# schedule, and has tests of its own (``test_a_fit_whose_residuals_...``).
+SMALL = {"width": 64, "depth": 2, "batch_points": 256, "resolution": 32, "encoding": "never"}
 # The quality tests' short schedule: a fit of a 16 k-point cube in about 20 s on two shared cores.
 # IGR's sharpness (beta 100) puts this small network's edge points at |Δf| 20 and up; a short
 # schedule ends at a higher learning rate than the default's.
-SHORT = {"iterations": 400, "width": 128, "depth": 3, "beta": 100, "resolution": 96, "final_learning_rate": 2.5e-4}
+SHORT = {
+    "iterations": 400,
+    "width": 128,
+    "depth": 3,
+    "beta": 100,
+    "resolution": 96,
+    "final_learning_rate": 2.5e-4,
+    "encoding": "never",
+}
 
 
 # --- losses -----------------------------------------------------------------------------------
@@ -429,6 +440,78 @@ def test_progress_reports_every_step_with_each_term():
     assert set(seen[-1].losses) == {"total", "vanish", "eikonal"}
 
 
+class _NoisySphereDistance(torch.nn.Module):
+    """f = |x| - 0.4, the signed distance of the sphere that the points below were drawn about."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.norm(dim=1) - 0.4
+
+
+def _sphere_points(noise: float, missed: int = 0, seed: int = 0) -> torch.Tensor:
+    """16,384 points on the sphere of radius 0.4, moved along its normal by normal noise of width
+    ``noise``; the first ``missed`` of them 8 noise widths inside (a pocket that f caps)."""
+    generator = torch.Generator().manual_seed(seed)
+    directions = torch.nn.functional.normalize(torch.randn(16_384, 3, generator=generator), dim=1)
+    offsets = noise * torch.randn(16_384, generator=generator)
+    offsets[:missed] = -8 * noise
+    return directions * (0.4 + offsets)[:, None]
+
+
+def test_the_residual_tail_of_points_at_their_noise_is_the_normal_distributions_whatever_its_width():
+    f = _NoisySphereDistance()
+    tails = [
+        fit_module.residual_tail(f, _sphere_points(noise, seed=seed))[0]
+        for noise in (0.0025, 0.005, 0.01)
+        for seed in (0, 1)
+    ]
+    # 3.29 σ over 0.674 σ: 4.88 for normal noise; a sample of 16,384 points has its 16 largest above
+    assert all(4.5 < tail < 5.3 for tail in tails), tails
+    assert max(tails) < fit_module.TAIL_LIMIT
+
+
+def test_the_residual_tail_of_points_that_f_misses_passes_the_limit():
+    """0.5 % of the points 8 noise widths from f, as where a fit caps a counterbore."""
+    f = _NoisySphereDistance()
+    for noise in (0.0025, 0.005, 0.01):
+        tail, reach = fit_module.residual_tail(f, _sphere_points(noise, missed=82))
+        assert tail > 7.5 > fit_module.TAIL_LIMIT and reach == pytest.approx(8 * noise, rel=0.01)
+
+
+@pytest.mark.parametrize("limit", [0.0, float("inf")])
+def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_features_and_is_that_fit(
+    monkeypatch, limit
+):
+    """Past the limit (0: every fit) the auto fit is the fit with features, bit for bit, after the
+    first half's steps, its progress going on from them; below it (inf) the fit without."""
+    monkeypatch.setattr(fit_module, "TAIL_LIMIT", limit)
+    monkeypatch.setattr(fit_module, "MISS_FLOOR", 0.0)
+    monkeypatch.setattr(fit_module, "CHECKED_ITERATIONS", 8)
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    params = FitParams(iterations=8, seed=2, features=4, **{**SMALL, "encoding": "auto"})
+    seen: list[Progress] = []
+    auto = fit(points, params, progress=seen.append)
+    restarted = limit == 0
+    expected = fit(points, params.model_copy(update={"encoding": "always" if restarted else "never"}))
+    assert auto.layers[0].in_features == (3 + 2 * 4 if restarted else 3)
+    for a, b in zip(auto.state_dict().values(), expected.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    steps = 8 + 4 if restarted else 8
+    assert [p.iteration for p in seen] == list(range(1, steps + 1))
+    assert [p.total for p in seen] == [8] * 4 + [steps] * (steps - 4)
+
+
+@pytest.mark.parametrize(("iterations", "features"), [(4, 0), (3, 4)])
+def test_a_fit_without_features_to_add_or_shorter_than_the_checked_ones_reads_no_residuals(
+    monkeypatch, iterations, features
+):
+    monkeypatch.setattr(fit_module, "TAIL_LIMIT", 0.0)
+    monkeypatch.setattr(fit_module, "CHECKED_ITERATIONS", 4)
+    monkeypatch.setattr(fit_module, "residual_tail", lambda *args: pytest.fail("read the residuals"))
+    points = sample_shape("cube", n_points=1000, seed=0).points
+    params = FitParams(iterations=iterations, features=features, **{**SMALL, "encoding": "auto"})
+    assert fit(points, params).layers[0].in_features == 3
+
+
 def test_the_early_steps_of_a_dense_cloud_draw_half_the_batch_and_the_last_steps_all_of_it(monkeypatch):
     sizes: list[int] = []
 
@@ -574,7 +657,9 @@ def test_a_fit_with_fourier_features_gives_a_close_smooth_cube():
     from core.reconstruct import reconstruct
 
     shape = sample_shape("cube", n_points=8000, noise=0.005, seed=0)
-    params = FitParams(extraction="mc", tau=20, batch_points=1024, seed=0, features=16, **SHORT)
+    params = FitParams(
+        extraction="mc", tau=20, batch_points=1024, seed=0, features=16, **{**SHORT, "encoding": "always"}
+    )
     result = reconstruct(shape.points, params)
     assert result.mesh.is_watertight
     surface = surface_distances(result.mesh, shape.mesh, count=20_000)
