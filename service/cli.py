@@ -124,6 +124,10 @@ def _fit(args: argparse.Namespace) -> int:
 
         def progress(update: Progress) -> None:
             if update.stage == Stage.FITTING:
+                if update.total != bar.total:  # the only fit whose steps grow: encoding=auto's restart
+                    restart = "the residuals halfway show points the fit misses: starting again with Fourier features"
+                    bar.write(restart, sys.stderr)
+                    bar.total = update.total
                 bar.update(update.iteration - bar.n)
                 if update.losses and (update.iteration % 50 == 0 or update.iteration == update.total):
                     bar.set_postfix(loss=f"{update.losses['total']:.4f}", edges=f"{update.edge_share or 0:.1%}")

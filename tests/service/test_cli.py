@@ -219,3 +219,21 @@ def test_an_unknown_format_is_refused_before_anything_runs(tmp_path):
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "'obj,fbx': expected formats among obj, ply, stl, glb" in result.stderr.splitlines()[-1]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_fit_that_starts_again_with_features_says_so_and_writes_its_outputs(tmp_path, monkeypatch, capsys):
+    """In-process, on a tiny fit made to pass the residual limits: one line on stderr, the outputs."""
+    from core import fit, network
+    from service import cli
+
+    monkeypatch.setenv("EDGERECON_COMPILE", "0")
+    monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
+    monkeypatch.setattr(fit, "CHECKED_ITERATIONS", 4)
+    monkeypatch.setattr(fit, "TAIL_LIMIT", 0.0)
+    monkeypatch.setattr(fit, "MISS_FLOOR", 0.0)
+    tiny = ["--iterations", "4", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
+    code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--features", "4", *tiny])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert err.count("starting again with Fourier features") == 1
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["edges.json", "mesh.obj", "normals.json"]
