@@ -36,13 +36,9 @@ RUN mkdir -p "$TORCHINDUCTOR_CACHE_DIR"
 # Compile the kernels now, into the image (and into a new inductor-cache volume, which Docker fills
 # from it): a new container's first fit then loads them in about 5 s instead of compiling them for
 # 25-45 s (when it runs on the kind of CPU the image was built on: the cache is per instruction
-# set). A two-step fit of a tiny cloud compiles every kernel a job uses (dynamic shapes), one
-# without the Fourier features and one with them (a fit that starts again with them).
+# set). The worker's own warm-up: two-step fits of a tiny cloud, one of each network a job may train.
 RUN python -c "from core.runtime import configure; configure(compile=True); \
-from core.params import FitParams; from core.reconstruct import reconstruct; \
-from evaluation.shapes import sample_shape; \
-[reconstruct(sample_shape('sphere', n_points=400).points, FitParams(iterations=2, resolution=32, encoding=e)) \
-for e in ('never', 'always')]"
+from worker.process import warm_kernels; warm_kernels()"
 
 EXPOSE 8000
 # Healthy when the API answers and Redis with it (/healthz is 503 while Redis is down).

@@ -256,7 +256,7 @@ def fitted(points: np.ndarray, params, cloud: str, fits: Path | None):
     if path is not None and path.exists():
         saved = torch.load(path, weights_only=True)
         # The network has Fourier features where its fit read them (encoding "auto" decides in the fit).
-        features = (saved["state"]["layers.0.weight"].shape[1] - 3) // 2
+        features = len(saved["state"]["frequencies"])
         model = ImplicitNetwork(params.width, params.depth, params.beta, features=features)
         model.load_state_dict(saved["state"])
         return model, float(saved["fit_seconds"])

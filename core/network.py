@@ -66,7 +66,6 @@ class ImplicitNetwork(nn.Module):
     ):
         super().__init__()
         self.beta = float(beta)
-        self.features = features
         sizes = [3 + 2 * features] + [width] * depth + [1]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         with torch.no_grad():
@@ -81,6 +80,11 @@ class ImplicitNetwork(nn.Module):
         # (features, 3): the angular frequencies b of the features sin(b·x)/|b|, cos(b·x)/|b|.
         directions = torch.randn(features, 3, generator=generator)
         self.register_buffer("frequencies", 2 * math.pi * frequency * directions)
+
+    @property
+    def features(self) -> int:
+        """How many Fourier features the first layer reads (0: x alone)."""
+        return len(self.frequencies)
 
     def _waves(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """sin(b·x)/|b| and cos(b·x)/|b| at the rows of ``x``: each (n, features)."""

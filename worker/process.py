@@ -149,21 +149,28 @@ def prepare_torch(settings: Settings) -> None:
     configure(compile=settings.compile, threads=settings.torch_threads())
     import torch
 
+    if settings.worker_warmup:
+        log.info("warming up (torch.compile of the network's kernels)...")
+        warm_kernels()
+    log.info("torch ready: %d thread(s)", torch.get_num_threads())
+
+
+def warm_kernels() -> None:
+    """Compile every kernel a job calls, on two-step fits of a tiny cloud (dynamic shapes): one of
+    each network a job may train, without Fourier features and with them (a fit that starts
+    again). The worker runs it at its start, the Dockerfile at the image's build."""
     from core.errors import EdgereconError
     from core.params import FitParams
     from core.reconstruct import reconstruct
     from evaluation.shapes import sample_shape
 
-    if settings.worker_warmup:
-        log.info("warming up (torch.compile of the network's kernels)...")
-        # Both networks a job may train: without Fourier features, and with them (a fit that starts again).
-        for encoding in ("never", "always"):
-            try:
-                params = FitParams(iterations=2, resolution=32, encoding=encoding)
-                reconstruct(sample_shape("sphere", n_points=400).points, params)
-            except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
-                log.info("warm-up fit: %s", error)
-    log.info("torch ready: %d thread(s)", torch.get_num_threads())
+    for encoding in ("never", "always"):
+        try:
+            reconstruct(
+                sample_shape("sphere", n_points=400).points, FitParams(iterations=2, resolution=32, encoding=encoding)
+            )
+        except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
+            log.info("warm-up fit: %s", error)
 
 
 if __name__ == "__main__":
