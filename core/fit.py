@@ -78,7 +78,7 @@ def fit(
     made in a background thread. With ``encoding="auto"`` the network starts without Fourier
     features and, in a fit of at least ``CHECKED_ITERATIONS`` steps whose residuals at its
     ``CHECK_SHARE`` have a heavier tail than noise (``residual_tail`` above ``TAIL_LIMIT``) that
-    reaches past ``MISS_FLOOR``, starts again with ``features`` of them: the same fit as
+    reaches past ``MISS_FLOOR`` and the points' spacing, starts again with ``features`` of them: the same fit as
     ``encoding="always"``, after those extra steps.
     Last, f is shifted so that its median at the points is 0 (``centre_level``).
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
@@ -92,7 +92,8 @@ def fit(
     features = params.features if params.encoding == "always" else 0
     check = None
     if params.encoding == "auto" and params.features > 0 and params.iterations >= CHECKED_ITERATIONS:
-        check = _Check(round(CHECK_SHARE * params.iterations), level_points)
+        floor = max(MISS_FLOOR, setup.spacing)
+        check = _Check(round(CHECK_SHARE * params.iterations), level_points, floor)
     model = _train(cloud, setup, params, features, progress, should_cancel, check)
     if model is None:
         assert check is not None
@@ -124,25 +125,35 @@ TAIL_LIMIT = 5.5
 # of the default grid). A cloud without noise has a tail of the fit's own rounding at every edge
 # (the cube's ratio 7.2), but it reaches only 0.008-0.013, which the mesh barely shows, and
 # the features gave such clouds no better surface (docs/benchmarks.md): not worth half a fit more.
+# The percentile must also pass the points' spacing (``_SetUp.spacing``): a sparse cloud's fit rounds
+# its edges over more of a tail (box_hole's 4,096 points 5.56-5.59, a cube's 5.67, reaching
+# 0.020-0.023, under their spacing of 0.032-0.040), and there the features made every CAD block
+# worse (box_hole's exact d_H 0.0133 -> 0.0250), while the shapes they help reach past it
+# (featuretype's 4,096 points 0.040 against 0.024).
 MISS_FLOOR = 0.02
 
 
 @dataclass(frozen=True)
 class _Check:
-    """When ``_train`` reads the residuals (the step), and where (the points, (n, 3))."""
+    """When ``_train`` reads the residuals (the step), where (the points, (n, 3)), and how far
+    their tail must reach for a restart (the floor, unit frame)."""
 
     step: int
     points: Tensor
+    floor: float
 
 
 @dataclass(frozen=True)
 class _SetUp:
     """What every step of a fit reads besides the network: the points' local scales (n,), the
-    free-space map, and the normal term's normals with whether each is oriented."""
+    free-space map, and the normal term's normals with whether each is oriented; and the points'
+    spacing (the median distance to the fourth nearest point), below which ``encoding="auto"``
+    takes no residual for a miss."""
 
     scales: Tensor
     free_space: FreeSpace | None
     cloud_normals: tuple[Tensor, Tensor] | None
+    spacing: float
 
 
 def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | None) -> _SetUp:
@@ -164,7 +175,7 @@ def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | 
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
-    return _SetUp(scales, free_space, cloud_normals)
+    return _SetUp(scales, free_space, cloud_normals, float(np.median(distances[:, 1])))
 
 
 def _train(
@@ -178,7 +189,7 @@ def _train(
 ) -> ImplicitNetwork | None:
     """A network with ``features`` Fourier features, trained on ``cloud`` (n, 3) for
     ``params.iterations`` steps; None when ``check`` finds its residuals' tail past ``TAIL_LIMIT``
-    and ``MISS_FLOOR`` at its step (the steps after it are not taken)."""
+    and its floor at its step (the steps after it are not taken)."""
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
         model = ImplicitNetwork(
@@ -232,7 +243,7 @@ def _train(
         if check is None or iteration != check.step:
             return False
         tail, reach = residual_tail(model, check.points)
-        return tail > TAIL_LIMIT and reach > MISS_FLOOR
+        return tail > TAIL_LIMIT and reach > check.floor
 
     warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
     try:

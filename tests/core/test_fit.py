@@ -477,20 +477,34 @@ def test_the_residual_tail_of_points_that_f_misses_passes_the_limit():
         assert tail > 7.5 > fit_module.TAIL_LIMIT and reach == pytest.approx(8 * noise, rel=0.01)
 
 
-@pytest.mark.parametrize("limit", [0.0, float("inf")])
+def _median_spacing(points: np.ndarray) -> float:
+    """The median distance to the fourth nearest other point, by brute force."""
+    distances = np.sort(np.linalg.norm(points[:, None] - points[None], axis=-1), axis=1)
+    return float(np.median(distances[:, 4]))
+
+
+@pytest.mark.parametrize(("tail", "reach", "restarted"), [(6.0, 1.1, True), (6.0, 0.9, False), (5.0, 10.0, False)])
 def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_features_and_is_that_fit(
-    monkeypatch, limit
+    monkeypatch, tail, reach, restarted
 ):
-    """Past the limit (0: every fit) the auto fit is the fit with features, bit for bit, after the
-    first half's steps, its progress going on from them; below it (inf) the fit without."""
-    monkeypatch.setattr(fit_module, "TAIL_LIMIT", limit)
-    monkeypatch.setattr(fit_module, "MISS_FLOOR", 0.0)
-    monkeypatch.setattr(fit_module, "CHECKED_ITERATIONS", 8)
+    """A tail past the limit that reaches past the floor and the points' spacing (reach: in
+    units of the larger) restarts the auto fit, which is then the fit with features, bit for bit,
+    after the first half's steps, its progress going on from them; else it is the fit without."""
     points = sample_shape("cube", n_points=1000, seed=0).points
+    floor = max(fit_module.MISS_FLOOR, _median_spacing(points))
+    read: list[int] = []
+
+    def residual_tail(model, at):
+        read.append(len(at))
+        return tail, reach * floor
+
+    monkeypatch.setattr(fit_module, "TAIL_LIMIT", 5.5)
+    monkeypatch.setattr(fit_module, "residual_tail", residual_tail)
+    monkeypatch.setattr(fit_module, "CHECKED_ITERATIONS", 8)
     params = FitParams(iterations=8, seed=2, features=4, **{**SMALL, "encoding": "auto"})
     seen: list[Progress] = []
     auto = fit(points, params, progress=seen.append)
-    restarted = limit == 0
+    assert read == [1000]
     expected = fit(points, params.model_copy(update={"encoding": "always" if restarted else "never"}))
     assert auto.layers[0].in_features == (3 + 2 * 4 if restarted else 3)
     for a, b in zip(auto.state_dict().values(), expected.state_dict().values(), strict=True):
