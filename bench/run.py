@@ -16,7 +16,9 @@ dynamic edge sampling), ``default`` (what edgerecon ships), ``mc`` (the defaults
 marching-cubes extraction and |Δf| > τ edges: the same fit, so the difference is the extraction's).
 All use the shipped schedule, network and free-space term. ``curve ECD`` scores the edge curves'
 samples against the true edges as ECD does the edge points; ``genus`` is the mesh's; ``crossing
-faces`` those of the mesh, as its OBJ file holds it, that pass through or touch another. A cloud
+faces`` those of the mesh, as its OBJ file holds it, that pass through or touch another. ``features``
+the Fourier features the fit's network read (32 where ``encoding="auto"`` started it again with
+them, 0 where not). A cloud
 ``<shape>/open`` is that shape's open variant (evaluation.open_clouds: the points beyond a plane or in a ball
 deleted, scored against the whole true surface).
 ``poisson`` is the classical baseline instead of a fit: screened Poisson with Open3D
@@ -113,10 +115,14 @@ COLUMNS = [
     ("genus", "genus", "{:.0f}"),
     ("crossing faces", "crossing_faces", "{:.0f}"),
     ("false edges", "edge_false_share", "{:.2%}"),
+    ("features", "fourier_features", "{:.0f}"),
     ("fit s", "fit_seconds", "{:.1f}"),
     ("extract s", "extract_seconds", "{:.1f}"),
     ("peak MB", "peak_mb", "{:.0f}"),
 ]
+# What a fit was rather than how well it did: shown per row, not averaged. ``features``: the
+# Fourier features its network read (``encoding="auto"`` restarts a fit with them halfway).
+NOT_AVERAGED = {"fourier_features"}
 # The measures whose lowest and highest over the seeds ``--seeds`` reports.
 SPREAD_COLUMNS = ["chamfer_exact", "hausdorff_exact", "normal_mean_oriented", "edge_iou", "genus"]
 
@@ -234,7 +240,8 @@ def run_one(
         scores["curve_ecd"] = edge_chamfer(np.concatenate([curve.points for curve in result.curves]), true_edges)
     scores.update(mesh_scores(result.mesh))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {**scores, **result.timings, "peak_mb": peak_kb / 1024, "edge_points": len(result.edge_indices)}
+    timings = {**result.timings, "peak_mb": peak_kb / 1024}
+    return {**scores, **timings, "fourier_features": model.features, "edge_points": len(result.edge_indices)}
 
 
 # The parameters that only the extraction reads: fits that differ in these alone are the same fit.
@@ -443,7 +450,7 @@ def average(results: list[dict | None]) -> dict | None:
     mean = {}
     for _, key, _ in COLUMNS:
         values = [r[key] for r in results if r.get(key) is not None and r[key] == r[key]]  # NaN: smooth shapes
-        mean[key] = statistics.fmean(values) if values else float("nan")
+        mean[key] = statistics.fmean(values) if values and key not in NOT_AVERAGED else float("nan")
     return mean
 
 
