@@ -54,9 +54,14 @@ def test_the_shared_sparse_box_holes_rounded_edges_are_not_read_as_misses_halfwa
     from core.progress import Progress
     from core.reconstruct import fit_cloud
 
-    tails = []
+    tails: list[tuple[float, float]] = []
     real_tail = fit_module.residual_tail
-    monkeypatch.setattr(fit_module, "residual_tail", lambda *args: tails.append(real_tail(*args)) or tails[-1])
+
+    def residual_tail(model, points):
+        tails.append(real_tail(model, points))
+        return tails[-1]
+
+    monkeypatch.setattr(fit_module, "residual_tail", residual_tail)
     after_check: list[Progress] = []
 
     def progress(update: Progress) -> None:
