@@ -118,8 +118,9 @@ CHECKED_ITERATIONS = 1800
 # ``residual_tail`` above which the fit starts again with Fourier features. Noise that is normal
 # along the surface gives 4.88 (3.29 σ over 0.674 σ). Halfway through default fits of the nine
 # sample shapes, their variants and eleven public CAD parts and scans (docs/benchmarks.md), the
-# clouds a plain fit follows gave 4.13-5.35 (box_hole's 4,096 points the highest); featuretype
-# 6.10-6.38, a housing with 24 holes 7.56-7.66, the teapot 5.78-6.93, an angled block 5.56-6.26.
+# clouds a plain fit follows gave 4.13-5.35 on an AMD EPYC; featuretype 6.10-6.38, a housing with
+# 24 holes 7.56-7.66, the teapot 5.78-6.93, an angled block 5.56-6.26. On a Xeon with AMX the
+# teapot gave 5.65 and clouds of 4,096 points 5.34-5.67, which the floor below tells apart.
 TAIL_LIMIT = 5.5
 # ... and the 99.9th percentile of |f - median f| that must pass this too (unit frame: three cells
 # of the default grid). A cloud without noise has a tail of the fit's own rounding at every edge

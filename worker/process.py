@@ -164,11 +164,10 @@ def warm_kernels() -> None:
     from core.reconstruct import reconstruct
     from evaluation.shapes import sample_shape
 
+    points = sample_shape("sphere", n_points=400).points
     for encoding in ("never", "always"):
         try:
-            reconstruct(
-                sample_shape("sphere", n_points=400).points, FitParams(iterations=2, resolution=32, encoding=encoding)
-            )
+            reconstruct(points, FitParams(iterations=2, resolution=32, encoding=encoding))
         except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
             log.info("warm-up fit: %s", error)
 
