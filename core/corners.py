@@ -26,7 +26,7 @@ from scipy.sparse import csr_matrix
 
 from core.curves import Curve, curve_ends, linked
 from core.features import unit
-from core.intersections import crossing_faces
+from core.intersections import uncrossed
 from core.trees import kd_tree
 
 CORNER_REACH = 0.08  # unit frame: the curve samples read around the curves' ends that meet
@@ -59,7 +59,6 @@ _GROUPED = 1024  # of those points, grouped by normal (its cost grows as the squ
 _FACES_TRIED = 6  # largest groups read as faces: every three of them are tried (20 at most)
 _FLAT = 5.0  # degrees: a face's plane is fitted to its points whose fit normal is this near its own
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
-_UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
 _INSIDE = 1e-6  # unit frame: how far inside a plane counts as inside
 
 
@@ -117,23 +116,7 @@ def snap_corners(
         for vertex in around[np.argsort(np.linalg.norm(vertices[around] - corner.point, axis=1))]:
             if (corner.normals @ vertices[vertex] < corner.offsets - _INSIDE).all():
                 _move(vertices, faces[faces_of[vertex].indices], vertex, _onto_faces(vertices[vertex], corner))
-    return trimesh.Trimesh(_uncrossed(vertices, mesh.vertices, faces), faces, process=False), found
-
-
-def _uncrossed(vertices: np.ndarray, before: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``vertices`` (v, 3) with the moved ones (those not at ``before``) of faces that cross
-    another face put back, until none does (``before``, as ``core.dual`` leaves it, crosses
-    nowhere, so putting back every moved vertex of a crossing face ends it)."""
-    vertices = vertices.copy()
-    moved = np.flatnonzero((vertices != before).any(axis=1))
-    for _ in range(_UNCROSS_PASSES):
-        crossing = crossing_faces(vertices, faces, np.flatnonzero(np.isin(faces, moved).any(axis=1)))
-        back = np.intersect1d(faces[crossing], moved)
-        if len(back) == 0:
-            break
-        vertices[back] = before[back]
-        moved = np.setdiff1d(moved, back)
-    return vertices
+    return trimesh.Trimesh(uncrossed(vertices, mesh.vertices, faces), faces, process=False), found
 
 
 def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spacing: float) -> list[Curve]:

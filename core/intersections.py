@@ -27,6 +27,7 @@ _MARGIN = 1e-7
 # size: about 6e-8 for a cell of 0.006) counts.
 _TOUCH = 1e-5
 _CHUNK = 8192  # faces of ``among`` tested at a time: a few hundred thousand candidate pairs
+_UNCROSS_PASSES = 4  # rounds of putting back the moved vertices of faces that cross others
 
 
 def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray) -> np.ndarray:
@@ -44,6 +45,23 @@ def crossing_faces(vertices: np.ndarray, faces: np.ndarray, among: np.ndarray) -
     tree = kd_tree(centre)
     chunks = [among[start : start + _CHUNK] for start in range(0, len(among), _CHUNK)]
     return np.unique(np.concatenate([_crossing(faces, corners, centre, radius, tree, chunk) for chunk in chunks]))
+
+
+def uncrossed(vertices: np.ndarray, before: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``vertices`` (v, 3) with the moved ones (those not at ``before``) of faces that cross
+    another face put back, until none does (``before``, as ``core.dual`` leaves it, crosses
+    nowhere, so putting back every moved vertex of a crossing face ends it). What the steps after
+    dual contouring (``core.creases``, ``core.corners``) do to a vertex they move too far."""
+    vertices = vertices.copy()
+    moved = np.flatnonzero((vertices != before).any(axis=1))
+    for _ in range(_UNCROSS_PASSES):
+        crossing = crossing_faces(vertices, faces, np.flatnonzero(np.isin(faces, moved).any(axis=1)))
+        back = np.intersect1d(faces[crossing], moved)
+        if len(back) == 0:
+            break
+        vertices[back] = before[back]
+        moved = np.setdiff1d(moved, back)
+    return vertices
 
 
 def _crossing(

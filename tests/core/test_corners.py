@@ -13,7 +13,6 @@ from core.corners import (
     Corner,
     _corner_of_points,
     _refitted,
-    _uncrossed,
     corners,
     extend_to_corners,
     snap_corners,
@@ -176,20 +175,6 @@ def test_snapping_puts_a_rounded_boxs_corners_back_on_the_mesh():
     # No face goes through or touches another, in memory or as an OBJ file writes it.
     for vertices in (snapped.vertices, np.round(snapped.vertices, 8)):
         assert len(crossing_faces(vertices, snapped.faces, np.arange(len(snapped.faces)))) == 0
-
-
-def test_a_moved_vertex_whose_face_then_crosses_another_goes_back():
-    sphere = trimesh.creation.icosphere(subdivisions=2)
-    before = sphere.vertices
-    moved = before.copy()
-    moved[0] = -1.3 * before[0]  # through the far side of the sphere
-    moved[5] = 1.02 * before[5]  # a little outwards: no face crosses
-    every = np.arange(len(sphere.faces))
-    assert len(crossing_faces(moved, sphere.faces, every)) > 0
-    kept = _uncrossed(moved, before, sphere.faces)
-    assert len(crossing_faces(kept, sphere.faces, every)) == 0
-    np.testing.assert_array_equal(kept[0], before[0])
-    np.testing.assert_array_equal(kept[5], moved[5])
 
 
 def test_a_rounded_boxs_curves_reach_its_corners():

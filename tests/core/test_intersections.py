@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from core.dual import _uncross
-from core.intersections import crossing_faces, edges_cross
+from core.intersections import crossing_faces, edges_cross, uncrossed
 
 
 def reference_edges_cross(edges_of: np.ndarray, triangle: np.ndarray) -> bool:
@@ -97,3 +97,17 @@ def test_a_sharpened_vertex_pushed_through_the_mesh_is_put_back():
     assert 0.5 <= went @ way / (way @ way) <= 1
     # An unsharpened vertex is not the sharpening's to put back.
     np.testing.assert_array_equal(_uncross(pushed, fallback, sphere.faces, ~sharpened), pushed)
+
+
+def test_a_moved_vertex_whose_face_then_crosses_another_goes_back():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    before = sphere.vertices
+    moved = before.copy()
+    moved[0] = -1.3 * before[0]  # through the far side of the sphere
+    moved[5] = 1.02 * before[5]  # a little outwards: no face crosses
+    every = np.arange(len(sphere.faces))
+    assert len(crossing_faces(moved, sphere.faces, every)) > 0
+    kept = uncrossed(moved, before, sphere.faces)
+    assert len(crossing_faces(kept, sphere.faces, every)) == 0
+    np.testing.assert_array_equal(kept[0], before[0])
+    np.testing.assert_array_equal(kept[5], moved[5])
