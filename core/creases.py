@@ -1,0 +1,240 @@
+"""Creases: the mesh's sharp edges and the edge curves moved onto planes fitted to the input points.
+
+Dual contouring (``core.dual``) puts a crease vertex where the planes of f's faces beside the edge
+meet, read a walk away from it. Where the fit tilts a face near the edge (most of all near a corner,
+where a third face's rounding bends it) those planes meet off the true edge: on seed-0 fits of the
+sample parts the edge curves lay a median 0.0024 to 0.0032 from the true edges, and some crease
+vertices of l_bracket 0.014 beyond them, its Hausdorff distance (docs/benchmarks.md). The input
+points say where the faces are. For each crease vertex or curve sample, each face's plane is fitted
+again to the input points around it that lie near that plane, on the face's side of the other plane
+(off the rounding) and whose fit normal is the face's, and the point goes onto the line where the two
+refitted planes meet. A refit is not used where it would move the point far, turn a plane far, fit
+one face much more loosely than the other, or where a face is curved (a disc's rim, a hole's wall:
+the planes of the points on either side along the edge differ), since a plane fitted to a curved
+face meets the other off the edge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import trimesh
+
+from core.curves import Curve
+from core.features import unit
+from core.intersections import uncrossed
+from core.trees import kd_tree
+
+# Unit frame: the input points read around a crease. The faces' points are averaged along the edge
+# as well as across it: at 0.08 a refit moved l_bracket's curves no nearer the true edges, at 0.15
+# and 0.2 their median distance went from 0.0029 to 0.0014 and 0.0016 (docs/benchmarks.md).
+REACH = 0.2
+MAX_POINTS = 512  # of those, at most about this many (evenly in input order): the cost stays bounded on dense clouds
+BAND = 0.02  # unit frame: points this near a face's plane may be its points (four times the sample data's noise)
+OFF_EDGE = 0.01  # unit frame: and this far from the edge along the face (off the rounding)
+# Degrees: a point's fit normal this near its face's (and a crease vertex's edges' faces this near
+# one another, or it is a corner's). At 15 the refit planes of the flange's rim, a cylinder of
+# radius 0.5, took in its curve and its curves went 0.0033 -> 0.0041 from the true edges.
+SAME_FACE = 8.0
+STRAIGHT = 3.0  # degrees: the most the planes of a face's points on either side along the edge may differ
+MIN_POINTS = 12  # points that make a plane (half of them on either side along the edge)
+PASSES = 3
+MAX_SPREAD = 1.5  # the wider spread of a face's points off its plane, over the narrower (both share the noise)
+MAX_TILT = 10.0  # degrees a refitted plane may turn from the face it was read from
+MAX_MOVE = 0.02  # unit frame: the farthest a crease vertex or curve sample moves
+
+
+def onto_refitted_edges(
+    mesh: trimesh.Trimesh, angle: float, points: np.ndarray, normals: np.ndarray
+) -> trimesh.Trimesh:
+    """``mesh`` (unit frame) with its crease vertices (on mesh edges whose faces' normals differ by
+    more than ``angle`` degrees, between two faces only) on the edge of their faces' planes refitted
+    to ``points`` (n, 3, unit frame), with the fit's unit ``normals`` (n, 3) at them. A vertex that
+    would turn one of its faces over, or leave a face crossing another, stays where it was.
+    Returns a new mesh, same faces."""
+    vertex, side_a, side_b, convex = _crease_sides(mesh, angle)
+    if len(vertex) == 0 or len(points) < MIN_POINTS:
+        return mesh
+    before = np.asarray(mesh.vertices, dtype=np.float64)
+    target, holds = _refitted(before[vertex], side_a, side_b, convex, points, normals)
+    if not holds.any():
+        return mesh
+    faces = np.asarray(mesh.faces)
+    vertices = before.copy()
+    vertices[vertex[holds]] = target[holds]
+    vertices = _unturned(vertices, before, faces)
+    return trimesh.Trimesh(uncrossed(vertices, before, faces), faces, process=False)
+
+
+def onto_refitted_curves(curves: list[Curve], points: np.ndarray, normals: np.ndarray) -> list[Curve]:
+    """``curves`` (unit frame) with each sample on the edge of its two faces' planes refitted to
+    ``points`` (n, 3) with the fit's unit ``normals`` (n, 3), where the refit holds. (Curves are read
+    from the mesh before its creases move: moved crease vertices turn the faces between them
+    unevenly, and the chains of creased mesh edges broke up: 44 % of the flange's true edges
+    farther than 0.01 from every curve, against 13 %.)"""
+    if not curves or len(points) < MIN_POINTS:
+        return curves
+    at = np.concatenate([curve.points for curve in curves])
+    left = np.concatenate([curve.left for curve in curves])
+    right = np.concatenate([curve.right for curve in curves])
+    convex = np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves])
+    target, _ = _refitted(at, left, right, convex, points, normals)
+    pieces = np.split(target, np.cumsum([len(curve.points) for curve in curves])[:-1])
+    return [replace(curve, points=piece) for curve, piece in zip(curves, pieces, strict=True)]
+
+
+def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The crease vertices (c,) between two faces, the unit normals of those faces (c, 3) each (the
+    mean over the vertex's crease edges, paired to agree), and whether the crease is convex (c,).
+    A vertex whose crease edges disagree on their faces by more than ``SAME_FACE`` (a corner, where
+    three faces meet) is left out: ``core.corners`` puts corners back."""
+    sharp = mesh.face_adjacency_angles > np.radians(angle)
+    pairs = mesh.face_adjacency[sharp]
+    face_normals = np.asarray(mesh.face_normals)
+    # One row per (vertex, crease edge), sorted by vertex; the vertex's first row is its reference.
+    owner = mesh.face_adjacency_edges[sharp].ravel()
+    order = np.argsort(owner, kind="stable")
+    owner = owner[order]
+    first = np.repeat(face_normals[pairs[:, 0]], 2, axis=0)[order]
+    second = np.repeat(face_normals[pairs[:, 1]], 2, axis=0)[order]
+    convex = np.repeat(mesh.face_adjacency_convex[sharp], 2)[order]
+    vertex, start, row_of = np.unique(owner, return_index=True, return_inverse=True)
+    reference_a, reference_b = first[start][row_of], second[start][row_of]
+    swap = _dot(first, reference_b) + _dot(second, reference_a) > _dot(first, reference_a) + _dot(second, reference_b)
+    side_a = np.where(swap[:, None], second, first)
+    side_b = np.where(swap[:, None], first, second)
+    cosine = np.cos(np.radians(SAME_FACE))
+    disagree = (_dot(side_a, reference_a) <= cosine) | (_dot(side_b, reference_b) <= cosine)
+    count = len(vertex)
+    mean_a, mean_b = np.zeros((count, 3)), np.zeros((count, 3))
+    np.add.at(mean_a, row_of, side_a)
+    np.add.at(mean_b, row_of, side_b)
+    rows = np.bincount(row_of, minlength=count)
+    is_convex = 2 * np.bincount(row_of, weights=convex, minlength=count) >= rows
+    keep = np.bincount(row_of, weights=disagree, minlength=count) == 0
+    return vertex[keep], unit(mean_a[keep]), unit(mean_b[keep]), is_convex[keep]
+
+
+def _refitted(
+    at: np.ndarray, side_a: np.ndarray, side_b: np.ndarray, convex: np.ndarray, points: np.ndarray, normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For points ``at`` (c, 3) on an edge between faces of unit normals ``side_a`` and ``side_b``
+    (c, 3) through them, convex or not (c,): the nearest point (c, 3) of the line where the planes
+    refitted to the input ``points`` meet (``at`` itself where the refit does not hold), and
+    whether it holds (c,)."""
+    near, valid = _neighbours(at, points)
+    offsets = points[near] - at[:, None]  # (c, k, 3), relative to the edge point
+    moments = _moments(offsets)
+    edge = unit(np.cross(side_a, side_b))
+    cosine = np.cos(np.radians(SAME_FACE))
+    facing = []
+    # Along each face, away from the edge: into the other plane's solid side at a convex edge,
+    # out of it at a concave one.
+    for face, other in ((side_a, side_b), (side_b, side_a)):
+        along = unit(np.cross(np.cross(face, other), face))
+        along *= np.where((_dot(along, other) < 0) != convex, -1.0, 1.0)[:, None]
+        facing.append(valid & (_along(offsets, along) > OFF_EDGE) & (_along(normals[near], face) > cosine))
+    half = _along(offsets, edge) > 0
+    normal_a, normal_b = side_a, side_b
+    offset_a, offset_b = np.zeros(len(at)), np.zeros(len(at))
+    holds = np.ones(len(at), dtype=bool)
+    for _ in range(PASSES):
+        on_a = facing[0] & (np.abs(_along(offsets, normal_a) - offset_a[:, None]) < BAND)
+        on_b = facing[1] & (np.abs(_along(offsets, normal_b) - offset_b[:, None]) < BAND)
+        on_a, on_b = on_a & ~on_b, on_b & ~on_a  # a point near both planes is neither face's
+        normal_a, offset_a, spread_a = _plane(moments, on_a, side_a)
+        normal_b, offset_b, spread_b = _plane(moments, on_b, side_b)
+    for chosen, face in ((on_a, side_a), (on_b, side_b)):
+        holds &= ((chosen & half).sum(axis=1) >= MIN_POINTS // 2) & ((chosen & ~half).sum(axis=1) >= MIN_POINTS // 2)
+        one_side, _, _ = _plane(moments, chosen & half, face)
+        other_side, _, _ = _plane(moments, chosen & ~half, face)
+        holds &= _dot(one_side, other_side) > np.cos(np.radians(STRAIGHT))
+    tilt = np.cos(np.radians(MAX_TILT))
+    holds &= (_dot(normal_a, side_a) > tilt) & (_dot(normal_b, side_b) > tilt)
+    holds &= np.maximum(spread_a, spread_b) <= MAX_SPREAD * np.minimum(spread_a, spread_b)
+    step = _onto_line(normal_a, offset_a, normal_b, offset_b)
+    holds &= np.linalg.norm(step, axis=1) <= MAX_MOVE
+    return np.where(holds[:, None], at + step, at), holds
+
+
+def _neighbours(at: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The indices (c, k) of at most ``MAX_POINTS`` input points within ``REACH`` of each of ``at``
+    (c, 3), and which of them are real (c, k) (the rest pad the rows)."""
+    found = kd_tree(points).query_ball_point(at, REACH)
+    width = max(1, min(MAX_POINTS, max(len(row) for row in found)))
+    near = np.zeros((len(at), width), dtype=np.int64)
+    valid = np.zeros((len(at), width), dtype=bool)
+    for row, indices in enumerate(found):
+        if len(indices) > MAX_POINTS:
+            # Every so many of them, in input order: the same for the same point, whatever else is asked.
+            indices = np.sort(indices)[:: -(-len(indices) // MAX_POINTS)]
+        near[row, : len(indices)] = indices
+        valid[row, : len(indices)] = True
+    return near, valid
+
+
+def _moments(offsets: np.ndarray) -> np.ndarray:
+    """Each point's coordinates and their products, (c, k, 9): x, y, z, xx, xy, xz, yy, yz, zz,
+    so that a plane fit to any subset of a row is one product with its mask."""
+    x, y, z = offsets[..., 0], offsets[..., 1], offsets[..., 2]
+    return np.stack([x, y, z, x * x, x * y, x * z, y * y, y * z, z * z], axis=2)
+
+
+def _plane(moments: np.ndarray, chosen: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row, the plane of the ``chosen`` (c, k) points (``_moments``, (c, k, 9)): its unit normal
+    (c, 3) along the axis they spread least on, turned to the side of ``towards`` (c, 3), its offset
+    (c,) and their spread off it (standard deviation, (c,)). Rows of fewer than three points give
+    planes the callers' counts refuse."""
+    total = np.maximum(chosen.sum(axis=1), 1)[:, None]
+    sums = (chosen[:, None, :].astype(np.float64) @ moments)[:, 0] / total  # (c, 9): means of each moment
+    mean = sums[:, :3]
+    xx, xy, xz, yy, yz, zz = (sums[:, 3 + i] for i in range(6))
+    second = np.stack([np.stack([xx, xy, xz], 1), np.stack([xy, yy, yz], 1), np.stack([xz, yz, zz], 1)], 1)
+    covariance = second - mean[:, :, None] * mean[:, None, :]
+    variances, axes = np.linalg.eigh(covariance)
+    normal = axes[:, :, 0] * np.where(_dot(axes[:, :, 0], towards) < 0, -1.0, 1.0)[:, None]
+    return normal, _dot(normal, mean), np.sqrt(np.maximum(variances[:, 0], 0.0))
+
+
+def _onto_line(normal_a: np.ndarray, offset_a: np.ndarray, normal_b: np.ndarray, offset_b: np.ndarray) -> np.ndarray:
+    """The shortest step (c, 3) from the origin onto the line where the planes n·x = offset (unit
+    normals (c, 3), offsets (c,)) a and b meet: in the span of the two normals. Zero where they
+    are parallel."""
+    cosine = _dot(normal_a, normal_b)
+    determinant = 1.0 - cosine**2
+    safe = np.where(determinant > 1e-6, determinant, np.inf)
+    weight_a = (offset_a - cosine * offset_b) / safe
+    weight_b = (offset_b - cosine * offset_a) / safe
+    return weight_a[:, None] * normal_a + weight_b[:, None] * normal_b
+
+
+def _unturned(vertices: np.ndarray, before: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``vertices`` with the moved ones (those not at ``before``) of faces turned over (against their
+    normal at ``before``) put back, until no face is."""
+    vertices = vertices.copy()
+    for _ in range(PASSES):
+        moved = np.flatnonzero((vertices != before).any(axis=1))
+        around = np.flatnonzero(np.isin(faces, moved).any(axis=1))
+        turned = around[_dot(_face_normals(before, faces[around]), _face_normals(vertices, faces[around])) <= 0]
+        back = np.intersect1d(faces[turned], moved)
+        if len(back) == 0:
+            break
+        vertices[back] = before[back]
+    return vertices
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The (unnormalised) normals (f, 3) of ``faces`` (f, 3) on ``vertices``."""
+    corner = vertices[faces]
+    return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+
+
+def _along(vectors: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Each row's vectors (c, k, 3) along its direction (c, 3): (c, k)."""
+    return (vectors @ directions[:, :, None])[:, :, 0]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (n, 3) arrays: (n,)."""
+    return np.einsum("ij,ij->i", a, b)

@@ -1,0 +1,162 @@
+"""core.creases: crease vertices and edge curves moved onto the edge of planes refitted to the points."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+import trimesh
+
+from core.creases import MAX_MOVE, _crease_sides, onto_refitted_curves, onto_refitted_edges
+from core.curves import Curve
+from core.dual import dual_contour
+from core.extract import sample_grid
+from core.intersections import crossing_faces
+from tests.core.test_dual import HALF, HIGH, LOW, box_mesh, cylinder, gradient
+
+NOISE = 0.005
+X, Y, Z = np.eye(3)
+# The box of tests.core.test_dual with its +x face turned by TILT about y (through the face's
+# centre): what a fit that tilts a face leaves; its +x face's edges at z = ±0.2 lie 0.014 off.
+TILT = np.radians(4.0)
+
+
+def _tilted_box(x: np.ndarray) -> np.ndarray:
+    """Signed distance-like function (max of plane distances) of the box with its +x face tilted."""
+    planes = [(-X, HALF[0]), (Y, HALF[1]), (-Y, HALF[1]), (Z, HALF[2]), (-Z, HALF[2])]
+    tilted = np.array([np.cos(TILT), 0.0, np.sin(TILT)])
+    planes.append((tilted, HALF[0] * np.cos(TILT)))
+    return np.max([x @ normal - offset for normal, offset in planes], axis=0)
+
+
+@functools.cache
+def tilted_box_mesh() -> trimesh.Trimesh:
+    grid = sample_grid(_tilted_box, 64, LOW, HIGH)
+    return dual_contour(grid, _tilted_box, lambda x: (_tilted_box(x), gradient(_tilted_box, x)))
+
+
+def noisy_samples(mesh: trimesh.Trimesh, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points drawn on ``mesh`` with Gaussian noise of NOISE, and the normals (n, 3) of
+    the faces they were drawn from (standing in for a fit's normals)."""
+    points, faces = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    rng = np.random.default_rng(seed)
+    return points + rng.normal(0.0, NOISE, points.shape), mesh.face_normals[faces]
+
+
+def distance_to_box_edges(points: np.ndarray) -> np.ndarray:
+    """Distance (n,) from ``points`` to the nearest of the true box's twelve edges."""
+    truth = box_mesh()
+    edges = truth.face_adjacency_edges[truth.face_adjacency_angles > np.radians(30)]
+    a, b = truth.vertices[edges[:, 0]], truth.vertices[edges[:, 1]]
+    t = np.clip(np.einsum("pej,ej->pe", points[:, None] - a[None], b - a) / np.einsum("ej,ej->e", b - a, b - a), 0, 1)
+    return np.linalg.norm(points[:, None] - (a[None] + t[:, :, None] * (b - a)[None]), axis=2).min(axis=1)
+
+
+def test_crease_vertices_a_tilted_face_put_off_their_edges_go_back_onto_the_true_edges():
+    mesh = tilted_box_mesh()
+    points, normals = noisy_samples(box_mesh(), 16384)
+    vertex, _, _, _ = _crease_sides(mesh, 30.0)
+    before = mesh.vertices[vertex]
+    # Along the tilted face's edges at z = ±0.2, away from the corners: 0.014 off at the face's edges.
+    far_from_corners = np.abs(before[:, 1]) < HALF[1] - 0.06
+    off = far_from_corners & (before[:, 0] > 0.25) & (np.abs(before[:, 2]) > 0.15)
+    assert off.sum() >= 20 and np.median(distance_to_box_edges(before[off])) > 0.008
+
+    moved = onto_refitted_edges(mesh, 30.0, points, normals)
+
+    after = moved.vertices[vertex]
+    assert np.median(distance_to_box_edges(after[off])) < 0.002
+    # Near the corners some refits are refused (fewer points on the corner's side); none goes farther
+    # off than the refit's own error (vertices exact on the other edges move by up to 0.0025).
+    assert np.mean(distance_to_box_edges(after[off]) < 0.004) > 0.9
+    assert (distance_to_box_edges(after) <= np.maximum(distance_to_box_edges(before), 0.003)).all()
+    # Only two-face crease vertices move, and no farther than MAX_MOVE.
+    unmoved = np.setdiff1d(np.arange(len(mesh.vertices)), vertex)
+    np.testing.assert_array_equal(moved.vertices[unmoved], mesh.vertices[unmoved])
+    assert np.linalg.norm(after - before, axis=1).max() <= MAX_MOVE + 1e-12
+    # No face turns over or crosses another.
+    assert (np.einsum("ij,ij->i", moved.face_normals, mesh.face_normals) > 0).all()
+    assert len(crossing_faces(moved.vertices, moved.faces, np.arange(len(moved.faces)))) == 0
+
+
+def test_a_corner_where_three_faces_meet_is_not_a_crease_between_two():
+    mesh = tilted_box_mesh()
+    vertex, side_a, side_b, convex = _crease_sides(mesh, 30.0)
+    corners = trimesh.creation.box(2 * HALF).vertices
+    near_corner = np.linalg.norm(mesh.vertices[vertex][:, None] - corners[None], axis=2).min(axis=1) < 0.005
+    assert not near_corner.any()
+    # Along the edges the two faces are two of the box's six, at 90 degrees (the tilted one within 4).
+    along = (np.abs(mesh.vertices[vertex]) < HALF - 0.05).sum(axis=1) == 1
+    assert along.sum() > 100
+    assert np.abs(np.einsum("ij,ij->i", side_a[along], side_b[along])).max() < np.sin(np.radians(5))
+    assert convex.all()
+
+
+def rim_distance(vertices: np.ndarray) -> np.ndarray:
+    """Distance (n,) from ``vertices`` to the rims of the cylinder of tests.core.test_dual."""
+    return np.hypot(np.hypot(vertices[:, 0], vertices[:, 1]) - 0.25, np.abs(vertices[:, 2]) - 0.2)
+
+
+def test_a_curved_faces_rim_mostly_stays_where_it_is():
+    # The rims of a cylinder of radius 0.25, exact on the mesh: a plane fitted to its wall meets the
+    # cap off the rim. The halves of the wall's points either side of a vertex give planes turned by
+    # about 4 degrees, so most refits are refused; the few that pass stay within 0.004 of the rim.
+    grid = sample_grid(cylinder, 64, LOW, HIGH)
+    mesh = dual_contour(grid, cylinder, lambda x: (cylinder(x), gradient(cylinder, x)))
+    points, normals = noisy_samples(trimesh.creation.cylinder(radius=0.25, height=0.4, sections=512), 16384)
+    vertex, _, _, _ = _crease_sides(mesh, 30.0)
+    assert len(vertex) > 100 and rim_distance(mesh.vertices[vertex]).max() < 0.001
+
+    moved = onto_refitted_edges(mesh, 30.0, points, normals)
+
+    changed = (moved.vertices != mesh.vertices).any(axis=1)
+    assert changed.sum() <= 0.15 * len(vertex)
+    assert rim_distance(moved.vertices[vertex]).max() < 0.004
+
+
+def straight_curve(
+    start: np.ndarray, direction: np.ndarray, left: np.ndarray, right: np.ndarray, convex: bool
+) -> Curve:
+    """A curve from ``start`` along ``direction``, 0.4 long, sampled every 0.005."""
+    t = np.arange(0.0, 0.4 + 1e-9, 0.005)[:, None]
+    count = len(t)
+    return Curve(start + t * direction, np.tile(left, (count, 1)), np.tile(right, (count, 1)), 90.0, convex)
+
+
+def face_points(rng: np.random.Generator, origin: np.ndarray, across: np.ndarray, count: int) -> np.ndarray:
+    """``count`` points on the face from ``origin`` spanned by ``across`` (2, 3): 0.5 along the
+    first, 0.9 along the second."""
+    return origin + rng.uniform(0, 1, (count, 2)) * [0.5, 0.9] @ across
+
+
+@pytest.mark.parametrize("convex", [True, False])
+def test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces(convex):
+    # Two faces meeting along the y axis, the floor z = 0 (outward +z) and the wall x = 0 (outward
+    # +x). Convex: the floor runs to -x and the wall down -z (the solid is x < 0, z < 0); concave (an
+    # L's inner corner): the floor runs to +x and the wall up +z (the solid is all but x > 0, z > 0).
+    rng = np.random.default_rng(1)
+    sense = -1.0 if convex else 1.0
+    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * X, Y]), 8000)
+    wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * Z, Y]), 8000)
+    points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
+    normals = np.vstack([np.tile(Z, (8000, 1)), np.tile(X, (8000, 1))])
+    # The curve 0.008 off the edge: into empty space at a convex edge, into the solid at a concave one.
+    off = sense * -0.008 * (X + Z) / np.sqrt(2)
+    curve = straight_curve(np.array([0.0, -0.2, 0.0]) + off, Y, Z, X, convex)
+
+    (moved,) = onto_refitted_curves([curve], points, normals)
+
+    assert np.linalg.norm(curve.points[:, [0, 2]], axis=1).min() > 0.0079
+    distance = np.linalg.norm(moved.points[:, [0, 2]], axis=1)
+    assert np.median(distance) < 0.001 and distance.max() < 0.003  # against noise of 0.005
+    np.testing.assert_allclose(moved.points[:, 1], curve.points[:, 1], atol=0.002)
+    assert moved.convex == convex and np.array_equal(moved.left, curve.left)
+
+
+def test_a_curve_with_too_few_points_beside_it_stays():
+    curve = straight_curve(np.zeros(3), Y, Z, X, True)
+    points = np.array([[0.1, 0.0, 0.0]] * 5)
+    (same,) = onto_refitted_curves([curve], points, np.tile(Z, (5, 1)))
+    np.testing.assert_array_equal(same.points, curve.points)
+    assert onto_refitted_curves([], points, np.tile(Z, (5, 1))) == []
