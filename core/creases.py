@@ -3,7 +3,7 @@
 Dual contouring (``core.dual``) puts a crease vertex where the planes of f's faces beside the edge
 meet, read a walk away from it. Where the fit tilts a face near the edge (most of all near a corner,
 where a third face's rounding bends it) those planes meet off the true edge: on seed-0 fits of the
-sample parts the edge curves lay a median 0.0024 to 0.0032 from the true edges, and some crease
+sample parts the edge curves lay a median 0.0024 to 0.0033 from the true edges, and some crease
 vertices of l_bracket 0.014 beyond them, its Hausdorff distance (docs/benchmarks.md). The input
 points say where the faces are. For each crease vertex or curve sample, each face's plane is fitted
 again to the input points around it that lie near that plane, on the face's side of the other plane
@@ -20,6 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from core.curves import Curve
 from core.features import unit
@@ -35,7 +36,7 @@ BAND = 0.02  # unit frame: points this near a face's plane may be its points (fo
 OFF_EDGE = 0.01  # unit frame: and this far from the edge along the face (off the rounding)
 # Degrees: a point's fit normal this near its face's (and a crease vertex's edges' faces this near
 # one another, or it is a corner's). At 15 the refit planes of the flange's rim, a cylinder of
-# radius 0.5, took in its curve and its curves went 0.0033 -> 0.0041 from the true edges.
+# radius 0.5, took in its curve and its curves went 0.0033 -> 0.0039 from the true edges.
 SAME_FACE = 8.0
 STRAIGHT = 3.0  # degrees: the most the planes of a face's points on either side along the edge may differ
 MIN_POINTS = 12  # points that make a plane (half of them on either side along the edge)
@@ -43,6 +44,7 @@ PASSES = 3
 MAX_SPREAD = 1.5  # the wider spread of a face's points off its plane, over the narrower (both share the noise)
 MAX_TILT = 10.0  # degrees a refitted plane may turn from the face it was read from
 MAX_MOVE = 0.02  # unit frame: the farthest a crease vertex or curve sample moves
+_CHUNK = 1024  # rows refitted at a time
 
 
 def onto_refitted_edges(
@@ -122,8 +124,29 @@ def _refitted(
     """For points ``at`` (c, 3) on an edge between faces of unit normals ``side_a`` and ``side_b``
     (c, 3) through them, convex or not (c,): the nearest point (c, 3) of the line where the planes
     refitted to the input ``points`` meet (``at`` itself where the refit does not hold), and
-    whether it holds (c,)."""
-    near, valid = _neighbours(at, points)
+    whether it holds (c,). In chunks of ``_CHUNK`` rows: each row holds up to ``MAX_POINTS``
+    points' coordinates and moments (about 50 kB), so memory stays bounded for any mesh."""
+    tree = kd_tree(points)
+    results = []
+    for start in range(0, len(at), _CHUNK):
+        rows = slice(start, start + _CHUNK)
+        results.append(_refitted_chunk(at[rows], side_a[rows], side_b[rows], convex[rows], tree, points, normals))
+    if not results:
+        return at.copy(), np.zeros(0, dtype=bool)
+    return np.concatenate([target for target, _ in results]), np.concatenate([holds for _, holds in results])
+
+
+def _refitted_chunk(
+    at: np.ndarray,
+    side_a: np.ndarray,
+    side_b: np.ndarray,
+    convex: np.ndarray,
+    tree: cKDTree,
+    points: np.ndarray,
+    normals: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``_refitted`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
+    near, valid = _neighbours(at, tree)
     offsets = points[near] - at[:, None]  # (c, k, 3), relative to the edge point
     moments = _moments(offsets)
     edge = unit(np.cross(side_a, side_b))
@@ -158,10 +181,10 @@ def _refitted(
     return np.where(holds[:, None], at + step, at), holds
 
 
-def _neighbours(at: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The indices (c, k) of at most ``MAX_POINTS`` input points within ``REACH`` of each of ``at``
-    (c, 3), and which of them are real (c, k) (the rest pad the rows)."""
-    found = kd_tree(points).query_ball_point(at, REACH)
+def _neighbours(at: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+    """The indices (c, k) of at most ``MAX_POINTS`` input points (in the k-d ``tree``) within
+    ``REACH`` of each of ``at`` (c, 3), and which of them are real (c, k) (the rest pad the rows)."""
+    found = tree.query_ball_point(at, REACH)
     width = max(1, min(MAX_POINTS, max(len(row) for row in found)))
     near = np.zeros((len(at), width), dtype=np.int64)
     valid = np.zeros((len(at), width), dtype=bool)
