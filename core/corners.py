@@ -25,7 +25,7 @@ import trimesh
 from scipy.sparse import csr_matrix
 
 from core.curves import Curve, curve_ends, linked
-from core.features import unit
+from core.features import face_normals, unit
 from core.intersections import uncrossed
 from core.trees import kd_tree
 
@@ -365,19 +365,13 @@ def _faces(normals: np.ndarray, smallest: int = MIN_NORMALS) -> list[np.ndarray]
     return faces
 
 
-def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The (unnormalised) normals (f, 3) of ``faces`` (f, 3) on ``vertices``."""
-    corner = vertices[faces]
-    return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-
-
 def _move(vertices: np.ndarray, around: np.ndarray, vertex: int, target: np.ndarray) -> bool:
     """Put ``vertex`` at ``target`` in ``vertices`` (in place) unless one of its faces ``around``
     ((f, 3)) would turn over; whether it moved."""
-    before = _face_normals(vertices, around)
+    before = face_normals(vertices, around)
     kept = vertices[vertex].copy()
     vertices[vertex] = target
-    if (np.einsum("ij,ij->i", before, _face_normals(vertices, around)) > 0).all():
+    if (np.einsum("ij,ij->i", before, face_normals(vertices, around)) > 0).all():
         return True
     vertices[vertex] = kept
     return False

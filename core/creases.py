@@ -23,7 +23,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from core.curves import Curve
-from core.features import unit
+from core.features import face_normals, unit
 from core.intersections import uncrossed
 from core.trees import kd_tree
 
@@ -47,43 +47,43 @@ MAX_MOVE = 0.02  # unit frame: the farthest a crease vertex or curve sample move
 _CHUNK = 1024  # rows refitted at a time
 
 
-def onto_refitted_edges(
-    mesh: trimesh.Trimesh, angle: float, points: np.ndarray, normals: np.ndarray
-) -> trimesh.Trimesh:
-    """``mesh`` (unit frame) with its crease vertices (on mesh edges whose faces' normals differ by
-    more than ``angle`` degrees, between two faces only) on the edge of their faces' planes refitted
-    to ``points`` (n, 3, unit frame), with the fit's unit ``normals`` (n, 3) at them. A vertex that
-    would turn one of its faces over, or leave a face crossing another, stays where it was.
-    Returns a new mesh, same faces."""
+def onto_refitted(
+    mesh: trimesh.Trimesh, curves: list[Curve], angle: float, points: np.ndarray, normals: np.ndarray
+) -> tuple[trimesh.Trimesh, list[Curve]]:
+    """``mesh`` and ``curves`` (unit frame) with the mesh's crease vertices (on mesh edges whose
+    faces' normals differ by more than ``angle`` degrees, between two faces only) and the curves'
+    samples on the edge of their two faces' planes refitted to ``points`` (n, 3, unit frame), with
+    the fit's unit ``normals`` (n, 3) at them, where the refit holds; one search of the points
+    serves both. A vertex that would turn one of its faces over, or leave a face crossing another,
+    stays where it was. Returns a new mesh (same faces) and new curves.
+
+    The curves must be read from the mesh before its creases move: moved crease vertices turn the
+    faces between them unevenly, and the chains of creased mesh edges broke up (44 % of the
+    flange's true edges farther than 0.01 from every curve, against 13 %)."""
     vertex, side_a, side_b, convex = _crease_sides(mesh, angle)
-    if len(vertex) == 0 or len(points) < MIN_POINTS:
-        return mesh
     before = np.asarray(mesh.vertices, dtype=np.float64)
-    target, holds = _refitted(before[vertex], side_a, side_b, convex, points, normals)
-    if not holds.any():
-        return mesh
+    lengths = [len(curve.points) for curve in curves]
+    at = np.concatenate([before[vertex], *(curve.points for curve in curves)])
+    if len(at) == 0 or len(points) < MIN_POINTS:
+        return mesh, curves
+    target, holds = _refitted(
+        at,
+        np.concatenate([side_a, *(curve.left for curve in curves)]),
+        np.concatenate([side_b, *(curve.right for curve in curves)]),
+        np.concatenate([convex, *(np.full(count, curve.convex) for curve, count in zip(curves, lengths, strict=True))]),
+        points,
+        normals,
+    )
+    on_mesh = slice(0, len(vertex))
+    ends = len(vertex) + np.cumsum([0, *lengths])
+    curves = [replace(curve, points=target[ends[i] : ends[i + 1]]) for i, curve in enumerate(curves)]
+    if not holds[on_mesh].any():
+        return mesh, curves
     faces = np.asarray(mesh.faces)
     vertices = before.copy()
-    vertices[vertex[holds]] = target[holds]
+    vertices[vertex[holds[on_mesh]]] = target[on_mesh][holds[on_mesh]]
     vertices = _unturned(vertices, before, faces)
-    return trimesh.Trimesh(uncrossed(vertices, before, faces), faces, process=False)
-
-
-def onto_refitted_curves(curves: list[Curve], points: np.ndarray, normals: np.ndarray) -> list[Curve]:
-    """``curves`` (unit frame) with each sample on the edge of its two faces' planes refitted to
-    ``points`` (n, 3) with the fit's unit ``normals`` (n, 3), where the refit holds. (Curves are read
-    from the mesh before its creases move: moved crease vertices turn the faces between them
-    unevenly, and the chains of creased mesh edges broke up: 44 % of the flange's true edges
-    farther than 0.01 from every curve, against 13 %.)"""
-    if not curves or len(points) < MIN_POINTS:
-        return curves
-    at = np.concatenate([curve.points for curve in curves])
-    left = np.concatenate([curve.left for curve in curves])
-    right = np.concatenate([curve.right for curve in curves])
-    convex = np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves])
-    target, _ = _refitted(at, left, right, convex, points, normals)
-    pieces = np.split(target, np.cumsum([len(curve.points) for curve in curves])[:-1])
-    return [replace(curve, points=piece) for curve, piece in zip(curves, pieces, strict=True)]
+    return trimesh.Trimesh(uncrossed(vertices, before, faces), faces, process=False), curves
 
 
 def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -93,13 +93,13 @@ def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.n
     three faces meet) is left out: ``core.corners`` puts corners back."""
     sharp = mesh.face_adjacency_angles > np.radians(angle)
     pairs = mesh.face_adjacency[sharp]
-    face_normals = np.asarray(mesh.face_normals)
+    normals_of = np.asarray(mesh.face_normals)
     # One row per (vertex, crease edge), sorted by vertex; the vertex's first row is its reference.
     owner = mesh.face_adjacency_edges[sharp].ravel()
     order = np.argsort(owner, kind="stable")
     owner = owner[order]
-    first = np.repeat(face_normals[pairs[:, 0]], 2, axis=0)[order]
-    second = np.repeat(face_normals[pairs[:, 1]], 2, axis=0)[order]
+    first = np.repeat(normals_of[pairs[:, 0]], 2, axis=0)[order]
+    second = np.repeat(normals_of[pairs[:, 1]], 2, axis=0)[order]
     convex = np.repeat(mesh.face_adjacency_convex[sharp], 2)[order]
     vertex, start, row_of = np.unique(owner, return_index=True, return_inverse=True)
     reference_a, reference_b = first[start][row_of], second[start][row_of]
@@ -239,18 +239,12 @@ def _unturned(vertices: np.ndarray, before: np.ndarray, faces: np.ndarray) -> np
     for _ in range(PASSES):
         moved = np.flatnonzero((vertices != before).any(axis=1))
         around = np.flatnonzero(np.isin(faces, moved).any(axis=1))
-        turned = around[_dot(_face_normals(before, faces[around]), _face_normals(vertices, faces[around])) <= 0]
+        turned = around[_dot(face_normals(before, faces[around]), face_normals(vertices, faces[around])) <= 0]
         back = np.intersect1d(faces[turned], moved)
         if len(back) == 0:
             break
         vertices[back] = before[back]
     return vertices
-
-
-def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The (unnormalised) normals (f, 3) of ``faces`` (f, 3) on ``vertices``."""
-    corner = vertices[faces]
-    return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
 
 
 def _along(vectors: np.ndarray, directions: np.ndarray) -> np.ndarray:

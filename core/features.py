@@ -212,3 +212,10 @@ def _first_reaching(share: np.ndarray, level: float) -> np.ndarray:
 def unit(vectors: np.ndarray) -> np.ndarray:
     """Each row of ``vectors`` (n, 3) scaled to length 1 (a zero row stays zero)."""
     return vectors / np.maximum(np.linalg.norm(vectors, axis=1, keepdims=True), 1e-12)
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The (unnormalised) normals (f, 3) of ``faces`` (f, 3) on ``vertices``: whether a moved
+    vertex turned a face over is the sign of their dot product before and after."""
+    corner = vertices[faces]
+    return np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])

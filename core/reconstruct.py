@@ -15,7 +15,7 @@ import torch
 import trimesh
 
 from core.corners import extend_to_corners, snap_corners
-from core.creases import onto_refitted_curves, onto_refitted_edges
+from core.creases import onto_refitted
 from core.curves import Curve, distance_to_curves, edge_curves, without_isolated
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
@@ -186,9 +186,7 @@ def extract_outputs(
         normals = unit_normals(model, unit, should_cancel=should_cancel)
         curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
         curves = without_isolated(curves, CURVE_JOIN_GAP, CURVE_GROUP_LENGTH, CURVE_KEEP_DIHEDRAL)
-        # The curves are read before the creases move (core.creases), then moved the same way.
-        mesh = onto_refitted_edges(mesh, params.edge_angle, unit, normals)
-        curves = onto_refitted_curves(curves, unit, normals)
+        mesh, curves = onto_refitted(mesh, curves, params.edge_angle, unit, normals)
         mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit, normals)
         curves = extend_to_corners(curves, corners, CURVE_JOIN_GAP, CURVE_SPACING)
         near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.creases import MAX_MOVE, _crease_sides, onto_refitted_curves, onto_refitted_edges
+from core.creases import MAX_MOVE, _crease_sides, onto_refitted
 from core.curves import Curve
 from core.dual import dual_contour
 from core.extract import sample_grid
@@ -63,7 +63,7 @@ def test_crease_vertices_a_tilted_face_put_off_their_edges_go_back_onto_the_true
     off = far_from_corners & (before[:, 0] > 0.25) & (np.abs(before[:, 2]) > 0.15)
     assert off.sum() >= 20 and np.median(distance_to_box_edges(before[off])) > 0.008
 
-    moved = onto_refitted_edges(mesh, 30.0, points, normals)
+    moved, _ = onto_refitted(mesh, [], 30.0, points, normals)
 
     after = moved.vertices[vertex]
     assert np.median(distance_to_box_edges(after[off])) < 0.002
@@ -108,7 +108,7 @@ def test_a_curved_faces_rim_mostly_stays_where_it_is():
     vertex, _, _, _ = _crease_sides(mesh, 30.0)
     assert len(vertex) > 100 and rim_distance(mesh.vertices[vertex]).max() < 0.001
 
-    moved = onto_refitted_edges(mesh, 30.0, points, normals)
+    moved, _ = onto_refitted(mesh, [], 30.0, points, normals)
 
     changed = (moved.vertices != mesh.vertices).any(axis=1)
     assert changed.sum() <= 0.15 * len(vertex)
@@ -145,7 +145,7 @@ def test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces(convex):
     off = sense * -0.008 * (X + Z) / np.sqrt(2)
     curve = straight_curve(np.array([0.0, -0.2, 0.0]) + off, Y, Z, X, convex)
 
-    (moved,) = onto_refitted_curves([curve], points, normals)
+    _, (moved,) = onto_refitted(trimesh.Trimesh(), [curve], 30.0, points, normals)
 
     assert np.linalg.norm(curve.points[:, [0, 2]], axis=1).min() > 0.0079
     distance = np.linalg.norm(moved.points[:, [0, 2]], axis=1)
@@ -157,6 +157,6 @@ def test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces(convex):
 def test_a_curve_with_too_few_points_beside_it_stays():
     curve = straight_curve(np.zeros(3), Y, Z, X, True)
     points = np.array([[0.1, 0.0, 0.0]] * 5)
-    (same,) = onto_refitted_curves([curve], points, np.tile(Z, (5, 1)))
+    _, (same,) = onto_refitted(trimesh.Trimesh(), [curve], 30.0, points, np.tile(Z, (5, 1)))
     np.testing.assert_array_equal(same.points, curve.points)
-    assert onto_refitted_curves([], points, np.tile(Z, (5, 1))) == []
+    assert onto_refitted(trimesh.Trimesh(), [], 30.0, points, np.tile(Z, (5, 1)))[1] == []
