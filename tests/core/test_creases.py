@@ -80,6 +80,32 @@ def test_crease_vertices_a_tilted_face_put_off_their_edges_go_back_onto_the_true
     assert len(crossing_faces(moved.vertices, moved.faces, np.arange(len(moved.faces)))) == 0
 
 
+def test_a_dense_cloud_is_read_through_a_draw_of_its_points(monkeypatch):
+    # At most CLOUD_POINTS points are searched (the cost of a million-point cloud stays that of a
+    # small one), and the draw still brings the tilted face's crease vertices back.
+    from core import creases
+
+    searched: list[int] = []
+    real_tree = creases.kd_tree
+
+    def kd_tree(points):
+        searched.append(len(points))
+        return real_tree(points)
+
+    monkeypatch.setattr(creases, "kd_tree", kd_tree)
+    monkeypatch.setattr(creases, "CLOUD_POINTS", 8192)
+    mesh = tilted_box_mesh()
+    points, normals = noisy_samples(box_mesh(), 16384)
+    vertex, _, _, _ = _crease_sides(mesh, 30.0)
+    before = mesh.vertices[vertex]
+    off = (np.abs(before[:, 1]) < HALF[1] - 0.06) & (before[:, 0] > 0.25) & (np.abs(before[:, 2]) > 0.15)
+
+    moved, _ = onto_refitted(mesh, [], 30.0, points, normals)
+
+    assert searched == [8192]
+    assert np.median(distance_to_box_edges(moved.vertices[vertex][off])) < 0.002
+
+
 def test_a_corner_where_three_faces_meet_is_not_a_crease_between_two():
     mesh = tilted_box_mesh()
     vertex, side_a, side_b, convex = _crease_sides(mesh, 30.0)
