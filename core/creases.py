@@ -132,19 +132,33 @@ def _refitted(
     """For points ``at`` (c, 3) on an edge between faces of unit normals ``side_a`` and ``side_b``
     (c, 3) through them, convex or not (c,): the nearest point (c, 3) of the line where the planes
     refitted to the input ``points`` meet (``at`` itself where the refit does not hold), and
-    whether it holds (c,). In chunks of ``_CHUNK`` rows: each row holds up to ``MAX_POINTS``
-    points' coordinates and moments (about 50 kB), so memory stays bounded for any mesh."""
+    whether it holds (c,)."""
+    normal_a, offset_a, normal_b, offset_b, _, holds = _planes(at, side_a, side_b, convex, points, normals)
+    step = _onto_line(normal_a, offset_a, normal_b, offset_b)
+    holds &= np.linalg.norm(step, axis=1) <= MAX_MOVE
+    return np.where(holds[:, None], at + step, at), holds
+
+
+def _planes(
+    at: np.ndarray, side_a: np.ndarray, side_b: np.ndarray, convex: np.ndarray, points: np.ndarray, normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The two faces' planes refitted to the input ``points`` around each of ``at`` (as in
+    ``_refitted``): their unit normals (c, 3) and offsets (c,) as n·(x - at) = offset, a's then
+    b's, the spread of each face's points off its plane (c, 2), and whether the refit holds (c,).
+    In chunks of ``_CHUNK`` rows: each row holds up to ``MAX_POINTS`` points' coordinates and
+    moments (about 50 kB), so memory stays bounded for any mesh."""
     tree = kd_tree(points)
-    results = []
-    for start in range(0, len(at), _CHUNK):
-        rows = slice(start, start + _CHUNK)
-        results.append(_refitted_chunk(at[rows], side_a[rows], side_b[rows], convex[rows], tree, points, normals))
-    if not results:
-        return at.copy(), np.zeros(0, dtype=bool)
-    return np.concatenate([target for target, _ in results]), np.concatenate([holds for _, holds in results])
+    parts = [
+        _planes_chunk(at[rows], side_a[rows], side_b[rows], convex[rows], tree, points, normals)
+        for rows in (slice(start, start + _CHUNK) for start in range(0, len(at), _CHUNK))
+    ]
+    if not parts:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    normal_a, offset_a, normal_b, offset_b, spread, holds = (np.concatenate(part) for part in zip(*parts, strict=True))
+    return normal_a, offset_a, normal_b, offset_b, spread, holds
 
 
-def _refitted_chunk(
+def _planes_chunk(
     at: np.ndarray,
     side_a: np.ndarray,
     side_b: np.ndarray,
@@ -152,8 +166,8 @@ def _refitted_chunk(
     tree: cKDTree,
     points: np.ndarray,
     normals: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``_refitted`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_planes`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
     near, valid = _neighbours(at, tree)
     offsets = points[near] - at[:, None]  # (c, k, 3), relative to the edge point
     moments = _moments(offsets)
@@ -184,9 +198,7 @@ def _refitted_chunk(
     tilt = np.cos(np.radians(MAX_TILT))
     holds &= (_dot(normal_a, side_a) > tilt) & (_dot(normal_b, side_b) > tilt)
     holds &= np.maximum(spread_a, spread_b) <= MAX_SPREAD * np.minimum(spread_a, spread_b)
-    step = _onto_line(normal_a, offset_a, normal_b, offset_b)
-    holds &= np.linalg.norm(step, axis=1) <= MAX_MOVE
-    return np.where(holds[:, None], at + step, at), holds
+    return normal_a, offset_a, normal_b, offset_b, np.stack([spread_a, spread_b], axis=1), holds
 
 
 def _neighbours(at: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
