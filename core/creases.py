@@ -12,6 +12,10 @@ refitted planes meet. A refit is not used where it would move the point far, tur
 one face much more loosely than the other, or where a face is curved (a disc's rim, a hole's wall:
 the planes of the points on either side along the edge differ), since a plane fitted to a curved
 face meets the other off the edge.
+
+The same planes give the normals of the input points beside an edge (``normals_on_faces``): ∇f
+there leans towards the other face over the band the fit rounds, and the refitted plane is the
+face the point lies on.
 """
 
 from __future__ import annotations
@@ -50,6 +54,21 @@ _CHUNK = 1024  # rows refitted at a time
 # some 60 times the 16,384-point cloud's points, and the step took 15 s and 940 MB more instead of
 # 1 s; twice the sample data's density leaves about 3,000 in a ball, well over MAX_POINTS.
 CLOUD_POINTS = 32_768
+# The normals of the points beside a curve (``normals_on_faces``). Unit frame: points this near a
+# curve sample whose refit holds.
+NORMAL_REACH = 0.09
+# Noise widths (the median spread of the faces' points off their refitted planes): a point takes a
+# face's normal if it lies within this many of that face's plane and this many nearer it than the
+# other's. Nearer the edge, noise may have carried a point from the other face, and a normal
+# given the wrong face of a right-angled edge points inward by a hair: at 2.5 one point of the
+# cube's 16,384 did (docs/benchmarks.md).
+CLEAR = 3.0
+MAX_TURN = 30.0  # degrees: the most a point's normal turns from the fit's to take its face's
+# Degrees: and the most the fit's normal may lean along the edge. A fit rounds an edge about the
+# edge's direction, so near a flat face's edge ∇f leans towards the other face only; on a curved
+# face (a cylinder's wall at its rim) the plane refitted at a curve sample is turned along the edge
+# from the face's normal beside it, as ∇f there is.
+ALONG_EDGE = 2.0
 
 
 def onto_refitted(
@@ -92,6 +111,50 @@ def onto_refitted(
     vertices[vertex[holds[on_mesh]]] = target[on_mesh][holds[on_mesh]]
     vertices = _unturned(vertices, before, faces)
     return trimesh.Trimesh(uncrossed(vertices, before, faces), faces, process=False), curves
+
+
+def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve], workers: int = 1) -> np.ndarray:
+    """The fit's unit ``normals`` (n, 3) at ``points`` (n, 3, unit frame), those of the points
+    within ``NORMAL_REACH`` of a sample of ``curves`` that lie clearly on one of its two faces
+    replaced by the normal of that face's plane refitted to the points (as ``onto_refitted``
+    refits them; only where the refit holds: both faces flat along the edge, neither turned far).
+
+    The fit rounds every edge, so ∇f tilts towards the other face over a band some 0.04 wide
+    beside it: on seed-0 fits of the sample parts, the points between 0.01 and 0.04 from an
+    edge carried a fifth of the mean normal error. A point too near the edge to tell its face
+    (within ``CLEAR`` noise widths of both planes) keeps the fit's normal, as does one whose fit
+    normal is more than ``MAX_TURN`` degrees from the face's (a third face's point, near a corner).
+    """
+    if not curves:
+        return normals
+    rows = subsample_rows(len(points), CLOUD_POINTS, seed=0)
+    at = np.concatenate([curve.points for curve in curves])
+    normal_a, offset_a, normal_b, offset_b, spread, holds = _planes(
+        at,
+        np.concatenate([curve.left for curve in curves]),
+        np.concatenate([curve.right for curve in curves]),
+        np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves]),
+        points[rows],
+        normals[rows],
+    )
+    if not holds.any():
+        return normals
+    noise = float(np.median(spread[holds]))
+    _, nearest = kd_tree(at).query(points, distance_upper_bound=NORMAL_REACH, workers=workers)
+    found = np.flatnonzero(nearest < len(at))
+    found = found[holds[nearest[found]]]
+    sample = nearest[found]
+    offsets = points[found] - at[sample]
+    to_a = np.abs(_dot(offsets, normal_a[sample]) - offset_a[sample])
+    to_b = np.abs(_dot(offsets, normal_b[sample]) - offset_b[sample])
+    face = np.where((to_a < to_b)[:, None], normal_a[sample], normal_b[sample])
+    clear = (np.abs(to_a - to_b) > CLEAR * noise) & (np.minimum(to_a, to_b) < CLEAR * noise)
+    clear &= _dot(face, normals[found]) > np.cos(np.radians(MAX_TURN))
+    edge = unit(np.cross(normal_a[sample], normal_b[sample]))
+    clear &= np.abs(_dot(normals[found], edge)) < np.sin(np.radians(ALONG_EDGE))
+    result = normals.copy()
+    result[found[clear]] = face[clear]
+    return result
 
 
 def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

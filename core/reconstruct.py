@@ -15,7 +15,7 @@ import torch
 import trimesh
 
 from core.corners import extend_to_corners, snap_corners
-from core.creases import onto_refitted
+from core.creases import normals_on_faces, onto_refitted
 from core.curves import Curve, distance_to_curves, edge_curves, without_isolated
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
@@ -189,6 +189,7 @@ def extract_outputs(
         mesh, curves = onto_refitted(mesh, curves, params.edge_angle, unit, normals)
         mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit, normals)
         curves = extend_to_corners(curves, corners, CURVE_JOIN_GAP, CURVE_SPACING)
+        normals = normals_on_faces(unit, normals, curves, torch.get_num_threads())
         near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())
         edges = np.flatnonzero(near <= params.edge_width)
         # Δf is reported at the edge points only, so only they pay for it.

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.creases import MAX_MOVE, _crease_sides, onto_refitted
-from core.curves import Curve
+from core.creases import ALONG_EDGE, MAX_MOVE, NORMAL_REACH, _crease_sides, normals_on_faces, onto_refitted
+from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
 from core.intersections import crossing_faces
@@ -186,3 +186,70 @@ def test_a_curve_with_too_few_points_beside_it_stays():
     _, (same,) = onto_refitted(trimesh.Trimesh(), [curve], 30.0, points, np.tile(Z, (5, 1)))
     np.testing.assert_array_equal(same.points, curve.points)
     assert onto_refitted(trimesh.Trimesh(), [], 30.0, points, np.tile(Z, (5, 1)))[1] == []
+
+
+def angles(normals: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Degrees (n,) between unit ``normals`` and ``truth`` (n, 3)."""
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, truth), -1.0, 1.0)))
+
+
+@pytest.mark.parametrize("convex", [True, False])
+def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_keep_the_fits(convex):
+    # The floor and wall of test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces, the curve on
+    # their edge; the fit's normals lean towards the other face's near the edge, as a fit that
+    # rounds it does (convex or concave): by 27 degrees at the edge, 10 at 0.03 from it, 2 at 0.08.
+    rng = np.random.default_rng(2)
+    sense = -1.0 if convex else 1.0
+    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * X, Y]), 8000)
+    wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * Z, Y]), 8000)
+    truth = np.vstack([np.tile(Z, (8000, 1)), np.tile(X, (8000, 1))])
+    from_edge = np.concatenate([np.abs(floor[:, 0]), np.abs(wall[:, 2])])  # along the face
+    lean = 0.5 * np.exp(-from_edge / 0.03)[:, None]
+    fitted = truth + lean * truth[::-1]  # the floor's lean towards +x, the wall's towards +z
+    fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
+    points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
+    curve = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, X, convex)
+    beside = (np.abs(points[:, 1]) < 0.15) & (from_edge > 0.03) & (from_edge < NORMAL_REACH - 0.01)
+    assert angles(fitted[beside], truth[beside]).mean() > 2.0
+
+    result = normals_on_faces(points, fitted, [curve])
+
+    replaced = (result != fitted).any(axis=1)
+    assert replaced[beside].mean() > 0.9
+    assert angles(result[beside], truth[beside]).mean() < 1.0  # the refitted planes' own error, about 0.4
+    # No point is given the other face's normal.
+    assert angles(result[replaced], truth[replaced]).max() < 5.0
+    # Nearly all of those too near the edge to tell their face keep the fit's normal (noise along
+    # the face carries a few clear of it), and so do all out of reach.
+    near_edge = from_edge < 0.005
+    assert near_edge.sum() > 100 and replaced[near_edge].mean() < 0.05
+    out_of_reach = np.linalg.norm(points[:, None] - curve.points[None], axis=2).min(axis=1) > NORMAL_REACH
+    assert out_of_reach.sum() > 1000 and not replaced[out_of_reach].any()
+
+
+def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
+    # A cylinder's rims: a plane fitted to the wall's points is the wall's normal at one place only.
+    # Most refits are refused (the wall's points either side along the rim fit planes turned from
+    # each other); where one holds, its wall plane is turned along the rim by up to 6 degrees, and
+    # a point whose normal leans along the edge by more than ALONG_EDGE keeps it. Given exact
+    # normals, none is made worse by more than that and the refitted planes' noise.
+    grid = sample_grid(cylinder, 64, LOW, HIGH)
+    mesh = dual_contour(grid, cylinder, lambda x: (cylinder(x), gradient(cylinder, x)))
+    curves = edge_curves(mesh, 30.0, 0.02, 0.005)
+    assert len(curves) == 2 and all(curve.closed for curve in curves)
+    exact = trimesh.creation.cylinder(radius=0.25, height=0.4, sections=512)
+    points, normals = noisy_samples(exact, 16384)
+
+    result = normals_on_faces(points, normals, curves)
+
+    error = angles(result, normals)
+    assert error.max() < ALONG_EDGE + 1.0
+    assert np.median(error[error > 0]) < 1.0
+
+
+def test_without_curves_or_points_to_refit_the_normals_are_the_fits():
+    normals = np.tile(Z, (5, 1))
+    points = np.array([[0.1, 0.0, 0.0]] * 5)
+    assert normals_on_faces(points, normals, []) is normals
+    curve = straight_curve(np.zeros(3), Y, Z, X, True)
+    np.testing.assert_array_equal(normals_on_faces(points, normals, [curve]), normals)
