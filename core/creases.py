@@ -55,8 +55,13 @@ _CHUNK = 1024  # rows refitted at a time
 # 1 s; twice the sample data's density leaves about 3,000 in a ball, well over MAX_POINTS.
 CLOUD_POINTS = 32_768
 # The normals of the points beside a curve (``normals_on_faces``). Unit frame: points this near a
-# curve sample whose refit holds.
+# curve sample whose refit holds, and no more than HELD_GAP farther from it than from the nearest
+# sample. The planes of a sample hold along a flat stretch of its edge, so a point beside a sample
+# whose refit failed (near a corner, say) takes those of the nearest one where it held: half as
+# much again off the mean error, but a point nearer a stretch where none held (another edge, a
+# curved face) by 0.05 to 0.07 was given the wrong face (docs/benchmarks.md).
 NORMAL_REACH = 0.09
+HELD_GAP = 0.02
 # Noise widths (the median spread of the faces' points off their refitted planes): a point takes a
 # face's normal if it lies within this many of that face's plane and this many nearer it than the
 # other's. Nearer the edge, noise may have carried a point from the other face, and a normal
@@ -117,11 +122,12 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     """The fit's unit ``normals`` (n, 3) at ``points`` (n, 3, unit frame), those of the points
     within ``NORMAL_REACH`` of a sample of ``curves`` that lie clearly on one of its two faces
     replaced by the normal of that face's plane refitted to the points (as ``onto_refitted``
-    refits them; only where the refit holds: both faces flat along the edge, neither turned far).
+    refits them; at the nearest sample where the refit holds, both faces flat along the edge and
+    neither turned far, if it is no more than ``HELD_GAP`` farther than the nearest sample).
 
     The fit rounds every edge, so ∇f tilts towards the other face over a band some 0.04 wide
     beside it: on seed-0 fits of the sample parts, the points between 0.01 and 0.04 from an
-    edge carried a fifth of the mean normal error. A point too near the edge to tell its face
+    edge carried a quarter to a third of the mean normal error. A point too near the edge to tell its face
     (within ``CLEAR`` noise widths of both planes) keeps the fit's normal, as does one whose fit
     normal is more than ``MAX_TURN`` degrees from the face's (a third face's point, near a corner).
     """
@@ -140,10 +146,12 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     if not holds.any():
         return normals
     noise = float(np.median(spread[holds]))
-    _, nearest = kd_tree(at).query(points, distance_upper_bound=NORMAL_REACH, workers=workers)
-    found = np.flatnonzero(nearest < len(at))
-    found = found[holds[nearest[found]]]
-    sample = nearest[found]
+    held = np.flatnonzero(holds)
+    to_held, nearest = kd_tree(at[held]).query(points, distance_upper_bound=NORMAL_REACH, workers=workers)
+    found = np.flatnonzero(nearest < len(held))
+    to_any, _ = kd_tree(at).query(points[found], workers=workers)
+    found = found[to_held[found] - to_any < HELD_GAP]
+    sample = held[nearest[found]]
     offsets = points[found] - at[sample]
     to_a = np.abs(_dot(offsets, normal_a[sample]) - offset_a[sample])
     to_b = np.abs(_dot(offsets, normal_b[sample]) - offset_b[sample])

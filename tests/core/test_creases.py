@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from core.creases import ALONG_EDGE, MAX_MOVE, NORMAL_REACH, _crease_sides, normals_on_faces, onto_refitted
+from core.creases import ALONG_EDGE, HELD_GAP, MAX_MOVE, NORMAL_REACH, _crease_sides, normals_on_faces, onto_refitted
 from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
@@ -225,6 +225,31 @@ def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_kee
     assert near_edge.sum() > 100 and replaced[near_edge].mean() < 0.05
     out_of_reach = np.linalg.norm(points[:, None] - curve.points[None], axis=2).min(axis=1) > NORMAL_REACH
     assert out_of_reach.sum() > 1000 and not replaced[out_of_reach].any()
+
+
+def test_points_nearer_a_curve_whose_refit_failed_than_one_where_it_held_keep_the_fits_normals():
+    # The convex edge of the test above, and a second curve on the floor 0.06 from it whose other
+    # face has no points (so its refit fails): a floor point beside that curve is within reach of
+    # the edge's planes, but it lies by another feature than that edge, and keeps its normal.
+    rng = np.random.default_rng(3)
+    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([-X, Y]), 8000)
+    wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([-Z, Y]), 8000)
+    points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
+    tilted = np.array([0.05, 0.0, 1.0]) / np.hypot(0.05, 1.0)  # 2.9 degrees off, across the edges
+    fitted = np.vstack([np.tile(tilted, (8000, 1)), np.tile(X, (8000, 1))])
+    edge = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, X, True)
+    elsewhere = straight_curve(np.array([-0.06, -0.2, 0.0]), Y, Z, -X, True)
+
+    result = normals_on_faces(points, fitted, [edge, elsewhere])
+
+    replaced = (result != fitted).any(axis=1)
+    middle = np.abs(points[:, 1]) < 0.15
+    by_elsewhere = middle & (np.abs(points[:, 0] + 0.06) < 0.01) & (np.abs(points[:, 2]) < 0.01)
+    # Floor points nearer the edge than the other curve, or farther by less than HELD_GAP (0.02)
+    # and clear of the wall's plane, take the floor's.
+    by_edge = middle & (points[:, 0] > -0.06 + HELD_GAP / 2 + 0.01) & (points[:, 0] < -0.022) & (points[:, 2] < 0.01)
+    assert by_elsewhere.sum() > 50 and not replaced[by_elsewhere].any()
+    assert by_edge.sum() > 50 and replaced[by_edge].mean() > 0.8
 
 
 def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
