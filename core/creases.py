@@ -58,8 +58,8 @@ CLOUD_POINTS = 32_768
 # curve sample whose refit holds, and no more than HELD_GAP farther from it than from the nearest
 # sample. The planes of a sample hold along a flat stretch of its edge, so a point beside a sample
 # whose refit failed (near a corner, say) takes those of the nearest one where it held: half as
-# much again off the mean error, but a point nearer a stretch where none held (another edge, a
-# curved face) by 0.05 to 0.07 was given the wrong face (docs/benchmarks.md).
+# much again off the mean error, but two points 0.03 and 0.07 nearer a stretch where none held
+# (another edge, a curved face) were given the wrong face (docs/benchmarks.md).
 NORMAL_REACH = 0.09
 HELD_GAP = 0.02
 # Noise widths (the median spread of the faces' points off their refitted planes): a point takes a
@@ -126,10 +126,11 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     neither turned far, if it is no more than ``HELD_GAP`` farther than the nearest sample).
 
     The fit rounds every edge, so ∇f tilts towards the other face over a band some 0.04 wide
-    beside it: on seed-0 fits of the sample parts, the points between 0.01 and 0.04 from an
-    edge carried a quarter to a third of the mean normal error. A point too near the edge to tell its face
-    (within ``CLEAR`` noise widths of both planes) keeps the fit's normal, as does one whose fit
-    normal is more than ``MAX_TURN`` degrees from the face's (a third face's point, near a corner).
+    beside it: on seed-0 fits of the sample parts, the points between 0.01 and 0.04 from an edge
+    carried a quarter to a third of the mean normal error. A point too near the edge to tell its
+    face (not ``CLEAR`` noise widths nearer one plane than the other) keeps the fit's normal, as
+    does one whose fit normal is more than ``MAX_TURN`` degrees from the face's (a third face's
+    point, near a corner) or leans along the edge by more than ``ALONG_EDGE`` (a curved face).
     """
     if not curves:
         return normals

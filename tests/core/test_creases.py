@@ -156,15 +156,22 @@ def face_points(rng: np.random.Generator, origin: np.ndarray, across: np.ndarray
     return origin + rng.uniform(0, 1, (count, 2)) * [0.5, 0.9] @ across
 
 
-@pytest.mark.parametrize("convex", [True, False])
-def test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces(convex):
-    # Two faces meeting along the y axis, the floor z = 0 (outward +z) and the wall x = 0 (outward
-    # +x). Convex: the floor runs to -x and the wall down -z (the solid is x < 0, z < 0); concave (an
-    # L's inner corner): the floor runs to +x and the wall up +z (the solid is all but x > 0, z > 0).
-    rng = np.random.default_rng(1)
+def floor_and_wall(seed: int, convex: bool) -> tuple[np.ndarray, np.ndarray, np.random.Generator]:
+    """Two faces meeting along the y axis, 8,000 points on each, before noise: the floor z = 0
+    (outward +z) and the wall x = 0 (outward +x). Convex: the floor runs to -x and the wall down -z
+    (the solid is x < 0, z < 0); concave (an L's inner corner): the floor runs to +x and the wall up
+    +z (the solid is all but x > 0, z > 0). With the generator, for the noise."""
+    rng = np.random.default_rng(seed)
     sense = -1.0 if convex else 1.0
     floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * X, Y]), 8000)
     wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * Z, Y]), 8000)
+    return floor, wall, rng
+
+
+@pytest.mark.parametrize("convex", [True, False])
+def test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces(convex):
+    floor, wall, rng = floor_and_wall(1, convex)
+    sense = -1.0 if convex else 1.0
     points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
     normals = np.vstack([np.tile(Z, (8000, 1)), np.tile(X, (8000, 1))])
     # The curve 0.008 off the edge: into empty space at a convex edge, into the solid at a concave one.
@@ -195,13 +202,10 @@ def angles(normals: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("convex", [True, False])
 def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_keep_the_fits(convex):
-    # The floor and wall of test_a_curve_off_its_edge_goes_onto_the_edge_of_its_faces, the curve on
-    # their edge; the fit's normals lean towards the other face's near the edge, as a fit that
-    # rounds it does (convex or concave): by 27 degrees at the edge, 10 at 0.03 from it, 2 at 0.08.
-    rng = np.random.default_rng(2)
-    sense = -1.0 if convex else 1.0
-    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * X, Y]), 8000)
-    wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([sense * Z, Y]), 8000)
+    # The floor and wall, the curve on their edge; the fit's normals lean towards the other face's
+    # near the edge, as a fit that rounds it does (convex or concave): by 27 degrees at the edge,
+    # 10 at 0.03 from it, 2 at 0.08.
+    floor, wall, rng = floor_and_wall(2, convex)
     truth = np.vstack([np.tile(Z, (8000, 1)), np.tile(X, (8000, 1))])
     from_edge = np.concatenate([np.abs(floor[:, 0]), np.abs(wall[:, 2])])  # along the face
     lean = 0.5 * np.exp(-from_edge / 0.03)[:, None]
@@ -231,9 +235,7 @@ def test_points_nearer_a_curve_whose_refit_failed_than_one_where_it_held_keep_th
     # The convex edge of the test above, and a second curve on the floor 0.06 from it whose other
     # face has no points (so its refit fails): a floor point beside that curve is within reach of
     # the edge's planes, but it lies by another feature than that edge, and keeps its normal.
-    rng = np.random.default_rng(3)
-    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([-X, Y]), 8000)
-    wall = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([-Z, Y]), 8000)
+    floor, wall, rng = floor_and_wall(3, True)
     points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
     tilted = np.array([0.05, 0.0, 1.0]) / np.hypot(0.05, 1.0)  # 2.9 degrees off, across the edges
     fitted = np.vstack([np.tile(tilted, (8000, 1)), np.tile(X, (8000, 1))])
