@@ -51,6 +51,16 @@ OPEN_VOTE_RATIO = 3
 # inside's walls only by a path round, longer by more than OPEN_DETOUR_VOXELS (the two sides of a
 # wall are 2 * ORIENT_VOXELS apart straight through it).
 OPEN_DETOUR_VOXELS = 4 * ORIENT_VOXELS
+# A stretch of a bore that the dilated shell closed at both ends, left unknown rather than inside
+# (``_without_slivers``): an enclosed pocket of the fill at most SLIVER_DEPTH voxels deep (1: one
+# voxel across; about 1.41: two, diagonally), at least SLIVER_LENGTH voxels long and at most
+# SLIVER_WIDTH wide (along its principal axes). A shaft's bore of radius 0.035 (3.3 voxels) left
+# stretches 12 to 33 voxels long, and the fit held the bore solid along its thin end. Shorter or
+# wider pockets stay inside: idler_riser's pockets of one and five voxels lie in its thin walls,
+# and its fits lost 0.0005 to 0.0071 of exact d_H at three seeds without them (docs/benchmarks.md).
+SLIVER_DEPTH = 1.5
+SLIVER_LENGTH = 8
+SLIVER_WIDTH = 4
 # Seconds between cancel checks while a call that cannot be interrupted runs in a thread.
 _POLL_SECONDS = 0.05
 
@@ -200,8 +210,9 @@ class FreeSpace:
     points is at least that far away, give or take ``margin`` (noise and sampling gaps). Where it
     can, ``sign`` also tells inside (-1) from outside (+1): the input points are voxelised, the
     voxels dilated by one so that the sampling gaps close, and the empty voxels that cannot be
-    reached from the box's boundary are inside. Near the points (the dilated voxels) and for
-    clouds that do not enclose a volume, the sign is unknown (0).
+    reached from the box's boundary are inside, but for lines of them one or two voxels across,
+    the stretches of a narrow bore that the dilation closed (``_without_slivers``). Near the points
+    (the dilated voxels) and for clouds that do not enclose a volume, the sign is unknown (0).
 
     An open cloud lets the fill run into the solid. Given the points' unoriented ``normals``
     (``plane_normals``), regions of that kind are found and taken back as inside (``_close_openings``):
@@ -235,6 +246,7 @@ class FreeSpace:
         enclosed = polled(lambda: ndimage.binary_fill_holes(shell), should_cancel)
         sign = np.where(enclosed, 0, 1).astype(np.int8)
         sign[enclosed & ~shell] = -1
+        sign = _without_slivers(sign)
         if normals is not None:
             check_cancel(should_cancel)
             sign = self._close_openings(sign, points, normals)
@@ -300,6 +312,46 @@ class FreeSpace:
         index = tuple(torch.as_tensor(axis) for axis in self._cells(samples.numpy()))
         sign = self.sign_grid[index].to(samples.dtype)
         return distance, sign
+
+
+def _without_slivers(sign: np.ndarray) -> np.ndarray:
+    """``sign`` (cells³, int8) with each inside pocket but the largest that is a line of voxels (at
+    most ``SLIVER_DEPTH`` deep, at least ``SLIVER_LENGTH`` long, at most ``SLIVER_WIDTH`` wide) set
+    to unknown (0).
+
+    The shell's dilation closes a bore narrower than about seven voxels in places, and the fill
+    takes the stretches between for inside; the fit then holds the bore solid against its own
+    points, and orients their normals into it. Unknown, the points decide.
+    """
+    inside = sign == -1
+    labels, count = ndimage.label(inside, structure=np.ones((3, 3, 3), dtype=bool))
+    if count < 2:
+        return sign
+    index = np.arange(1, count + 1)
+    depth = np.asarray(ndimage.maximum(ndimage.distance_transform_edt(inside), labels, index))
+    largest = int(np.argmax(ndimage.sum(inside, labels, index))) + 1
+    unknown = np.zeros(count + 1, dtype=bool)
+    boxes = ndimage.find_objects(labels)
+    for label in index[(depth <= SLIVER_DEPTH) & (index != largest)]:
+        box = boxes[label - 1]
+        cells = np.argwhere(labels[box] == label).astype(np.float64)
+        length, width = _extents(cells)
+        unknown[label] = length >= SLIVER_LENGTH and width <= SLIVER_WIDTH
+    if not unknown.any():
+        return sign
+    return np.where(unknown[labels], np.int8(0), sign)
+
+
+def _extents(cells: np.ndarray) -> tuple[float, float]:
+    """The length and width of a set of voxels (n, 3): the extent of their centres along their
+    first and second principal axes, plus one voxel."""
+    if len(cells) < 2:
+        return 1.0, 1.0
+    centred = cells - cells.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    along = centred @ axes[:, ::-1][:, :2]
+    length, width = np.ptp(along, axis=0) + 1.0
+    return float(length), float(width)
 
 
 def _candidate_regions(

@@ -252,6 +252,41 @@ def test_free_space_of_an_open_wedge_leaves_the_slot_along_its_base_outside(shar
     assert (signs[0] == 1).all() and (signs[1] == -1).all()
 
 
+def bored_shaft(n_points: int = 16_384, seed: int = 0, radius: float = 0.1, bore: float = 0.034) -> np.ndarray:
+    """A noisy solid cylinder (length 1 along x) with a through-bore along its axis: points (N, 3),
+    drawn on its outer wall, its bore's wall and its two annular ends by area."""
+    rng = np.random.default_rng(seed)
+    areas = np.array([2 * np.pi * radius, 2 * np.pi * bore, 2 * np.pi * (radius**2 - bore**2)])
+    part = rng.choice(3, n_points, p=areas / areas.sum())
+    angle = rng.uniform(0, 2 * np.pi, n_points)
+    x = rng.uniform(-0.5, 0.5, n_points)
+    r = np.where(part == 0, radius, bore)
+    ends = part == 2
+    r[ends] = np.sqrt(rng.uniform(bore**2, radius**2, ends.sum()))  # uniform over the annulus
+    x[ends] = rng.choice([-0.5, 0.5], ends.sum())
+    clean = np.c_[x, r * np.cos(angle), r * np.sin(angle)]
+    return clean + rng.normal(0, 0.005, clean.shape)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_free_space_leaves_a_narrow_bores_stretches_unknown_where_the_shell_closes_it(seed, monkeypatch):
+    """A bore of radius 0.034 is under seven voxels of the map across: the dilated shell closes it
+    in places, and the fill takes the stretches between for solid (the fit then held a shaft's
+    bore solid). Lines of inside voxels are left unknown; the wall around the bore, 0.066 thick,
+    keeps its inside."""
+    points = bored_shaft(seed=seed)
+    along = torch.linspace(-0.45, 0.45, 181)
+    axis = torch.stack([along, torch.zeros_like(along), torch.zeros_like(along)], dim=1)
+    in_wall = torch.stack([along, torch.zeros_like(along), torch.full_like(along, 0.067)], dim=1)
+    space = FreeSpace(points)
+    assert 6 < 2 * 0.034 / space.voxel < 7.5  # the bore is as narrow as the test means
+    assert (space.distance_and_sign(axis)[1] == -1).float().mean() < 0.05
+    wall = space.distance_and_sign(in_wall)[1]
+    assert (wall <= 0).all() and (wall == -1).float().mean() > 0.9
+    monkeypatch.setattr(sampling, "_without_slivers", lambda sign: sign)
+    assert (FreeSpace(points).distance_and_sign(axis)[1] == -1).float().mean() > 0.3  # the fill alone
+
+
 @pytest.mark.parametrize("name", ["cube", "l_shape", "cylinder", "sphere"])
 def test_free_space_of_a_closed_cloud_is_the_flood_fills_with_or_without_normals(name):
     points = sample_shape(name, n_points=6000, seed=2).points  # the L's notch sees little sky, and stays outside

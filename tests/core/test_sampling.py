@@ -9,7 +9,7 @@ import pytest
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from core.sampling import _across_own_walls, _geodesic_distance
+from core.sampling import SLIVER_LENGTH, _across_own_walls, _geodesic_distance, _without_slivers
 from core.visibility import DIRECTIONS
 
 
@@ -87,3 +87,24 @@ def test_a_region_without_walls_on_both_sides_loses_nothing():
     assert not _across_own_walls(taken, ~taken, outer_only).any()
     swapped = sides[::-1]  # the same walls seen from their other sides
     np.testing.assert_array_equal(_across_own_walls(taken, ~taken, swapped), _across_own_walls(taken, ~taken, sides))
+
+
+def test_a_line_of_inside_voxels_beside_the_inside_is_a_bores_stretch_and_left_unknown():
+    """A bore closed at both ends by the shell leaves a line of inside voxels one across; a pocket of
+    a few voxels, a sheet one voxel thick (a thin wall's inside) and the largest pocket, however
+    thin, stay inside."""
+    sign = np.ones((40, 40, 40), dtype=np.int8)
+    sign[2:38, 2:38, 2:38] = 0  # the shell and what it encloses
+    sign[5:20, 5:20, 5:20] = -1  # the part's own inside
+    sign[25, 5 : 5 + SLIVER_LENGTH + 2, 25] = -1  # a bore's stretch
+    sign[30:32, 5:7, 30] = -1  # four voxels
+    sign[25:35, 25:35, 35] = -1  # a sheet
+    result = _without_slivers(sign)
+    changed = np.argwhere(result != sign)
+    assert (result[25, 5 : 5 + SLIVER_LENGTH + 2, 25] == 0).all()
+    assert len(changed) == SLIVER_LENGTH + 2
+    thin = np.zeros_like(sign)
+    thin[3, 3 : 3 + 2 * SLIVER_LENGTH, 3] = -1  # the largest pocket is the part's inside, a rod's
+    thin[30, 3 : 3 + SLIVER_LENGTH, 30] = -1
+    result = _without_slivers(thin)
+    assert (result[3, 3 : 3 + 2 * SLIVER_LENGTH, 3] == -1).all() and (result[30] == 0).all()
