@@ -56,7 +56,7 @@ OPEN_DETOUR_VOXELS = 4 * ORIENT_VOXELS
 # voxel across; about 1.41: two, diagonally), at least SLIVER_LENGTH voxels long and at most
 # SLIVER_WIDTH wide (along its principal axes). A shaft's bore of radius 0.035 (3.3 voxels) left
 # stretches 12 to 33 voxels long, and the fit held the bore solid along its thin end. Shorter or
-# wider pockets stay inside: idler_riser's pockets of one and five voxels lie in its thin walls,
+# wider pockets stay inside: idler_riser's pockets of one and five voxels lie inside its solid,
 # and its fits lost 0.0005 to 0.0071 of exact d_H at three seeds without them (docs/benchmarks.md).
 SLIVER_DEPTH = 1.5
 SLIVER_LENGTH = 8
