@@ -6,7 +6,7 @@ made by constructive solid geometry, to check that the defaults hold on them:
 
 - ``chamfer_block``: a 1 × 0.7 × 0.5 block whose twelve edges are 45° chamfers (faces 135° apart);
 - ``stepped_shaft``: three cylinders of radius 0.16, 0.11 and 0.07 end to end, bored through along
-  their axis (radius 0.035: the thin end's wall is as thick as the bore is wide);
+  their axis (radius 0.035: the thin end's wall is as thick as the bore's radius);
 - ``open_box``: a box open at the top, walls and floor 0.05 thick;
 - ``hex_nut``: a hexagonal prism 0.35 thick with a bore of radius 0.22;
 - ``slotted_plate``: a plate 0.1 thick with two slots and three holes of radius 0.05 (genus 5);
