@@ -13,6 +13,7 @@ from core.curves import Curve, edge_curves
 from core.dual import dual_contour
 from core.extract import sample_grid
 from core.intersections import crossing_faces
+from evaluation.metrics import normal_angles
 from tests.core.test_dual import HALF, HIGH, LOW, box_mesh, cylinder, gradient
 
 NOISE = 0.005
@@ -195,11 +196,6 @@ def test_a_curve_with_too_few_points_beside_it_stays():
     assert onto_refitted(trimesh.Trimesh(), [], 30.0, points, np.tile(Z, (5, 1)))[1] == []
 
 
-def angles(normals: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Degrees (n,) between unit ``normals`` and ``truth`` (n, 3)."""
-    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, truth), -1.0, 1.0)))
-
-
 @pytest.mark.parametrize("convex", [True, False])
 def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_keep_the_fits(convex):
     # The floor and wall, the curve on their edge; the fit's normals lean towards the other face's
@@ -214,15 +210,15 @@ def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_kee
     points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
     curve = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, X, convex)
     beside = (np.abs(points[:, 1]) < 0.15) & (from_edge > 0.03) & (from_edge < NORMAL_REACH - 0.01)
-    assert angles(fitted[beside], truth[beside]).mean() > 2.0
+    assert normal_angles(fitted[beside], truth[beside]).mean() > 2.0
 
     result = normals_on_faces(points, fitted, [curve])
 
     replaced = (result != fitted).any(axis=1)
     assert replaced[beside].mean() > 0.9
-    assert angles(result[beside], truth[beside]).mean() < 1.0  # the refitted planes' own error, about 0.4
+    assert normal_angles(result[beside], truth[beside]).mean() < 1.0  # the refitted planes' own error, about 0.4
     # No point is given the other face's normal.
-    assert angles(result[replaced], truth[replaced]).max() < 5.0
+    assert normal_angles(result[replaced], truth[replaced]).max() < 5.0
     # Nearly all of those too near the edge to tell their face keep the fit's normal (noise along
     # the face carries a few clear of it), and so do all out of reach.
     near_edge = from_edge < 0.005
@@ -269,7 +265,7 @@ def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
 
     result = normals_on_faces(points, normals, curves)
 
-    error = angles(result, normals)
+    error = normal_angles(result, normals)
     assert error.max() < ALONG_EDGE + 1.0
     assert np.median(error[error > 0]) < 1.0
 
