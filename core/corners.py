@@ -42,8 +42,8 @@ SNAP_RADIUS = 0.02  # unit frame: mesh vertices this near a corner and inside it
 # l_bracket the sharpening had put vertices 0.012 to 0.024 past the faces of a corner.
 BEYOND_MOVE = 0.02
 # Shares of its way back that a vertex beyond a corner's faces tries, in turn, where its move onto
-# them turns one of its faces over or collapses it (several go onto the corner's point), before it
-# stays where it was.
+# them turns over, collapses or folds one of its faces (several go onto the corner's point), before
+# it stays where it was.
 _BACK_SHARES = (0.25, 0.5)
 # The least share of its area, seen along its normal before, that a face keeps when vertices
 # beyond a corner's faces move: less is a face turned over, collapsed or folded edge-on. At 0 (only
@@ -152,11 +152,11 @@ def _beyond_onto_faces(
     Near a corner the sharpening reads planes tilted by the third face's rounding, which meet past
     the true faces: on octagon_pocket's pocket corners vertices lay 0.017 inside the solid, its
     Hausdorff distance. The points keep a corner whose planes are off from moving the mesh off
-    the surface: around a chamfered block's small corner facets the mesh went up to 0.0106 from
-    the truth without them, against 0.0095 before and 0.0086 with them. Several vertices go onto
-    the corner's point or one of its edges and would collapse the faces between them, so the moves
-    are made together and a vertex whose move turns over or collapses a face goes back part of the
-    way (``_BACK_SHARES``), or stays."""
+    the surface: around a chamfered block's small corner facets the mesh went 0.0106 from the
+    truth without them (0.0095 before this step). Several vertices go onto the corner's point or
+    one of its edges and would collapse the faces between them, so the moves are made together
+    and a vertex whose move turns over, collapses or folds a face goes back part of the way
+    (``_partway``), or stays."""
     target = vertices.copy()
     tree = kd_tree(vertices)
     for corner in found:
