@@ -12,9 +12,11 @@ rounding's, so where the input points are given, each plane is then refitted to 
 face around the corner, off the other two faces. Where the curves do not show three faces (an
 acute ridge comes out as two creases a strip apart, and the edges of the thin face it runs into
 in scraps), the faces are read from the input points around the curves' ends instead, grouped
-by the fit's normals there. The same walks, run onto the third face, also read tilted planes that
-meet beyond the true faces, and the sharpening pushes vertices near a corner past them (into the
-solid of a concave corner, out of a convex one's); those go back onto the corner's faces too.
+by the fit's normals there; and where a curve runs round a corner whose third edge stops short of
+it (a pocket's floor corner), from the points around its bend. The same walks, run onto the third
+face, also read tilted planes that meet beyond the true faces, and the sharpening pushes vertices
+near a corner past them (into the solid of a concave corner, out of a convex one's); those go back
+onto the corner's faces too.
 """
 
 from __future__ import annotations
@@ -76,8 +78,29 @@ _POINTS_REACH = 0.35
 _GROUPED = 1024  # of those points, grouped by normal (its cost grows as the square of their number)
 _FACES_TRIED = 6  # largest groups read as faces: every three of them are tried (20 at most)
 _FLAT = 5.0  # degrees: a face's plane is fitted to its points whose fit normal is this near its own
+# The least share of a group's normals within _FLAT of their mean that makes it a face. A strip of a
+# cylinder's wall, its normals spread evenly over SAME_FACE either way, has a third (flat within the
+# noise though it is); the faces of the sample parts have 0.6 and more: on a shaft's rim such strips
+# made corners 0.02 off the surface.
+_FLAT_SHARE = 0.5
 _CANDIDATES = 8  # mesh vertices tried for the corner itself, nearest first
 _INSIDE = 1e-6  # unit frame: how far inside a plane counts as inside
+# Where the edges of a corner come out as one curve that runs round it (a pocket's floor edges,
+# when the upright edge between its walls stops short of the floor), the corner has no ends near
+# it. A curve's course over BEND_REACH before a sample and over BEND_REACH after it turning by more
+# than BEND_ANGLE degrees marks a place to look for one in the input points, as for the ends of
+# curves that show no corner (``_corner_of_points``); a hole's rim turns as much where its radius
+# is under 0.05, and the points there show no three faces that meet.
+BEND_REACH = 0.04
+BEND_ANGLE = 45.0
+BEND_POINTS_REACH = 0.16
+# Read that near, a cylinder's strips pass for faces (a strip within SAME_FACE of one normal is flat
+# within the noise), and a shaft's rim gave seven corners 0.02 off its surface. Such a corner is
+# kept only where the curves show each of its three edges: SEEN_SAMPLES samples within
+# BEND_POINTS_REACH of it and SEEN_BAND of the line two of its planes share. Two strips of a smooth
+# wall have no crease between them; a pocket's upright edge, stopped 0.08 above its floor, has.
+SEEN_SAMPLES = 3
+SEEN_BAND = 0.015
 
 
 @dataclass
@@ -203,12 +226,14 @@ def _partway(before: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.nd
 
 
 def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spacing: float) -> list[Curve]:
-    """``curves`` carried on to the corners of ``found``: for each corner and each of its three
-    edges, the curve end nearest to it within ``join`` whose side normals are that edge's two faces
-    gains samples up to the corner (every ``spacing`` or less, with the end's side normals). A
-    part's edges meet at its corners, as in its drawing; only the nearest end, since an edge may
-    come out in pieces."""
+    """``curves`` carried on to the corners of ``found``: a curve that runs round a corner is cut
+    there (``_cut_round``); then for each corner and each of its three edges, the curve end nearest
+    to it within ``join`` whose side normals are that edge's two faces gains samples up to the
+    corner (every ``spacing`` or less, with the end's side normals). A part's edges meet at its
+    corners, as in its drawing; only the nearest end, since an edge may come out in pieces."""
     cosine = np.cos(np.radians(SAME_FACE))
+    for corner in found:
+        curves = [piece for curve in curves for piece in _cut_round(curve, corner, join)]
     chosen: dict[tuple[int, int], np.ndarray] = {}  # (curve, end) -> the corner it goes on to
     for corner in found:
         nearest: dict[tuple[int, int], tuple[float, int, int]] = {}  # edge (two faces) -> gap, curve, end
@@ -244,6 +269,38 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
     return extended
 
 
+def _cut_round(curve: Curve, corner: Corner, join: float) -> list[Curve]:
+    """``curve`` in two where it runs round ``corner`` (``_bends``): the stretch of its samples
+    within ``join`` of the corner, around the nearest, whose side normals are not two of the
+    corner's faces (the rounding) left out, if the samples on either side of it are two different
+    edges of the corner. An open curve's pieces then end by the corner and are carried on to it; a
+    loop stays as it is."""
+    gap = np.linalg.norm(curve.points - corner.point, axis=1)
+    nearest = int(np.argmin(gap))
+    if curve.closed or gap[nearest] > join:
+        return [curve]
+    alike = np.abs(np.stack([curve.left, curve.right], axis=1) @ corner.normals.T)  # (m, 2, 3)
+    faces = np.sort(alike.argmax(axis=2), axis=1)
+    on_edge = (alike.max(axis=2) > np.cos(np.radians(SAME_FACE))).all(axis=1) & (faces[:, 0] != faces[:, 1])
+    rounding = ~on_edge & (gap <= join)
+    if not rounding[nearest]:
+        return [curve]
+    first, last = nearest, nearest
+    while first > 0 and rounding[first - 1]:
+        first -= 1
+    while last < len(gap) - 1 and rounding[last + 1]:
+        last += 1
+    if first < 2 or last > len(gap) - 3:  # the rounding reaches an end: nothing runs on past it
+        return [curve]
+    before, after = first - 1, last + 1
+    if not (on_edge[before] and on_edge[after]) or (faces[before] == faces[after]).all():
+        return [curve]
+    return [
+        Curve(curve.points[part], curve.left[part], curve.right[part], curve.dihedral, curve.convex)
+        for part in (slice(0, first), slice(last + 1, None))
+    ]
+
+
 def corners(
     curves: list[Curve], join: float, points: np.ndarray | None = None, normals: np.ndarray | None = None
 ) -> list[Corner]:
@@ -260,11 +317,35 @@ def corners(
     With the input ``points`` (n, 3), each such corner's planes are refitted to them
     (``_refitted``); with the fit's ``normals`` (n, 3) at them as well, a group whose curves show no
     corner gets the one its points show (``_corner_of_points``) if it lies within ``join`` of one
-    of the group's ends.
+    of the group's ends. Then, farther than ``join`` from every corner found, such a group and each
+    place where a curve bends round a corner (``_bends``) get the corner the points within
+    ``BEND_POINTS_REACH`` show, if the curves show its three edges (``_edges_seen``).
     """
+    found, unresolved = _corners_at_ends(curves, join, points, normals)
+    if points is None or normals is None:
+        return found
+    # A nearer look where the wide reach took in other parts' faces larger than the corner's, and
+    # where a curve bends round a corner; second, since it is the less sure.
+    bends = [(bend, bend[None]) for curve in curves for bend in _bends(curve.points)]
+    for centre, ends in [*unresolved, *bends]:
+        if any(np.linalg.norm(corner.point - centre) <= join for corner in found):
+            continue
+        corner = _corner_of_points(centre, ends, points, normals, BEND_POINTS_REACH)
+        if corner is None or _gap(corner, ends) > join or not _edges_seen(corner, curves):
+            continue
+        if not any(np.linalg.norm(corner.point - other.point) <= join for other in found):
+            found.append(corner)
+    return found
+
+
+def _corners_at_ends(
+    curves: list[Curve], join: float, points: np.ndarray | None, normals: np.ndarray | None
+) -> tuple[list[Corner], list[tuple[np.ndarray, np.ndarray]]]:
+    """The corners of ``corners`` where curves end near one another, and the groups of ends
+    (their centre (3,) and the ends (e, 3)) where neither the curves nor the points show one."""
     open_curves = [curve for curve in curves if not curve.closed]
     if len(open_curves) < 2:
-        return []
+        return [], []
     ends = curve_ends(open_curves)
     group = linked(kd_tree(ends).query_pairs(join, output_type="ndarray"), len(ends))
     samples = np.concatenate([curve.points for curve in curves])
@@ -272,7 +353,8 @@ def corners(
     right = np.concatenate([curve.right for curve in curves])
     convex = np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves])
     tree = kd_tree(samples)
-    found = []
+    found: list[Corner] = []
+    unresolved: list[tuple[np.ndarray, np.ndarray]] = []
     for label in np.unique(group):
         members = np.flatnonzero(group == label)
         if len(np.unique(members // 2)) < 2:  # one curve's two ends: no corner
@@ -286,7 +368,52 @@ def corners(
             corner = _corner_of_points(centre, ends[members], points, normals)
             if corner is not None and _gap(corner, ends[members]) <= join:
                 found.append(corner)
-    return found
+            else:
+                unresolved.append((centre, ends[members]))
+    return found, unresolved
+
+
+def _edges_seen(corner: Corner, curves: list[Curve]) -> bool:
+    """Whether ``curves`` show each of ``corner``'s three edges: ``SEEN_SAMPLES`` of their samples
+    within ``BEND_POINTS_REACH`` of it lie within ``SEEN_BAND`` of the line two of its planes share,
+    farther than twice that from the corner along it."""
+    samples = np.concatenate([curve.points for curve in curves]) - corner.point
+    samples = samples[np.linalg.norm(samples, axis=1) <= BEND_POINTS_REACH]
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        along = unit(np.cross(corner.normals[i], corner.normals[j])[None])[0]
+        on_line = samples @ along
+        off_line = np.linalg.norm(samples - np.outer(on_line, along), axis=1)
+        # Away from the corner, where every sample is near all three lines.
+        if np.count_nonzero((off_line <= SEEN_BAND) & (np.abs(on_line) > 2 * SEEN_BAND)) < SEEN_SAMPLES:
+            return False
+    return True
+
+
+def _bends(points: np.ndarray) -> np.ndarray:
+    """The samples (b, 3) of the polyline ``points`` (m, 3; a loop where its first and last are
+    the same) where its course over ``BEND_REACH`` before and over ``BEND_REACH`` after turns by
+    more than ``BEND_ANGLE`` degrees, the sharpest of each stretch of such samples."""
+    lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    along = np.concatenate([[0.0], np.cumsum(lengths)])
+    total = along[-1]
+    loop = len(points) > 2 and np.array_equal(points[0], points[-1])
+    reach_along, reach_points = along, points
+    if loop:  # three rounds, so that every reach from the middle one falls inside
+        reach_along = np.concatenate([along[:-1] - total, along[:-1], along + total])
+        reach_points = np.concatenate([points[:-1], points[:-1], points])
+
+    def at(distance: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(distance, reach_along, reach_points[:, axis]) for axis in range(3)], axis=1)
+
+    before, after = points - at(along - BEND_REACH), at(along + BEND_REACH) - points
+    cosine = np.einsum("ij,ij->i", unit(before), unit(after))
+    turning = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    inside = loop | ((along >= BEND_REACH) & (along <= total - BEND_REACH))
+    bending = np.flatnonzero(inside & (turning > BEND_ANGLE))
+    if len(bending) == 0:
+        return np.zeros((0, 3))
+    stretches = np.split(bending, np.flatnonzero(np.diff(bending) > 1) + 1)
+    return np.array([points[stretch[np.argmax(turning[stretch])]] for stretch in stretches])
 
 
 def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, convex: np.ndarray) -> Corner | None:
@@ -321,25 +448,30 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
     return Corner(np.linalg.solve(planes, offsets), sign * planes, sign * offsets)
 
 
-def _corner_of_points(centre: np.ndarray, ends: np.ndarray, points: np.ndarray, normals: np.ndarray) -> Corner | None:
-    """The corner that the input ``points`` (n, 3) within ``_POINTS_REACH`` of ``centre`` (3,)
-    show nearest to the curve ``ends`` (e, 3) around it, or None.
+def _corner_of_points(
+    centre: np.ndarray, ends: np.ndarray, points: np.ndarray, normals: np.ndarray, reach: float = _POINTS_REACH
+) -> Corner | None:
+    """The corner that the input ``points`` (n, 3) within ``reach`` of ``centre`` (3,) show
+    nearest to the curve ``ends`` (e, 3) around it, or None.
 
     A face is a group of the points' ``normals`` (n, 3, the fit's) within ``SAME_FACE`` of one
     another (``_faces`` of ``_GROUPED`` of them, the ``_FACES_TRIED`` largest), and its plane the
     one through the mean of the points whose normal lies within ``_FLAT`` of the group's that
     they are least far from, refitted to those within ``_REFIT_BAND`` of it (off a parallel
     face's points). A face whose plane turns from its normals by more than ``SAME_FACE`` is a
-    rounded edge's points, a line, and is passed over. Of every three faces that make a corner
-    (``_corner_of_faces``), the one nearest the ends: within the reach lie other parts' faces,
-    often larger than the corner's own."""
-    near = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= _POINTS_REACH)
+    rounded edge's points, a line, and is passed over, as is a group of which fewer than
+    ``_FLAT_SHARE`` lie within ``_FLAT`` of its normal (a strip of a curved wall). Of every three
+    faces that make a corner (``_corner_of_faces``), the one nearest the ends: within the reach
+    lie other parts' faces, often larger than the corner's own."""
+    near = np.flatnonzero(np.linalg.norm(points - centre, axis=1) <= reach)
     grouped = near[np.unique(np.linspace(0, len(near) - 1, min(_GROUPED, len(near))).astype(np.int64))]
     smallest = max(3, int(np.ceil(_REFIT_POINTS * len(grouped) / max(len(near), 1))))
     cosine, flat = np.cos(np.radians(SAME_FACE)), np.cos(np.radians(_FLAT))
     faces: list[_Face] = []
     for group in _faces(normals[grouped], smallest)[:_FACES_TRIED]:
         normal = unit(normals[grouped[group]].mean(axis=0)[None])[0]
+        if np.mean(normals[grouped[group]] @ normal > flat) < _FLAT_SHARE:  # a strip of a curved wall
+            continue
         chosen = points[near[normals[near] @ normal > flat]]  # off the rounding, which pulls the plane round
         if len(chosen) < _REFIT_POINTS:
             continue

@@ -424,3 +424,167 @@ def test_of_the_faces_the_points_show_those_meeting_nearest_the_curves_ends_make
     assert corner is not None
     assert np.linalg.norm(corner.point) < 0.004
     assert (corner.normals @ np.full(3, -0.05) < corner.offsets).all()  # the box's inside, inside all three
+
+
+def pocket_corner(count: int = 900, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy points (n, 3) on the three faces of a square pocket's floor corner at the origin (the
+    pocket x < 0, y < 0, z > 0: the floor z = 0 and the walls x = 0 and y = 0, each 0.25 across),
+    and the unit normals a fit gives them (out of the solid, into the pocket)."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0.0, 0.25, (2, 3, count))
+    faces = [
+        np.stack([-u[0], -v[0], 0 * u[0]], 1),
+        np.stack([0 * u[1], -u[1], v[1]], 1),
+        np.stack([-u[2], 0 * u[2], v[2]], 1),
+    ]
+    points = np.concatenate(faces) + rng.normal(0.0, 0.005, (3 * count, 3))
+    normals = np.concatenate([np.tile(Z, (count, 1)), np.tile(-X, (count, 1)), np.tile(-Y, (count, 1))])
+    return points, normals
+
+
+def round_the_corner(radius: float) -> Curve:
+    """The pocket's floor edges (``pocket_corner``) as one concave curve that runs from 0.15 along
+    the wall y = 0 round the corner on an arc of ``radius`` and 0.15 along the wall x = 0, every
+    0.005 or less, as the extraction leaves it where the walls' upright edge stops short of the floor."""
+    straight = np.linspace(-0.15, -radius, int(np.ceil((0.15 - radius) / 0.005)) + 1)
+    angle = np.linspace(np.pi / 2, 0.0, int(np.ceil(radius * np.pi / 2 / 0.005)) + 1)[1:-1]
+    points = np.concatenate(
+        [
+            np.stack([straight, 0 * straight, 0 * straight], 1),
+            np.stack([radius * (np.cos(angle) - 1), radius * (np.sin(angle) - 1), 0 * angle], 1),
+            np.stack([0 * straight, straight[::-1], 0 * straight], 1),
+        ]
+    )
+    wall = np.concatenate(
+        [
+            np.tile(-Y, (len(straight), 1)),
+            -np.stack([np.cos(angle), np.sin(angle), 0 * angle], 1),
+            np.tile(-X, (len(straight), 1)),
+        ]
+    )
+    return Curve(points, np.tile(Z, (len(points), 1)), wall, 90.0, False)
+
+
+def upright_edge() -> Curve:
+    """The pocket's upright edge (``pocket_corner``: walls x = 0 and y = 0), from 0.08 above its
+    floor up to 0.2, as the extraction leaves it when it stops short of the floor."""
+    z = np.arange(0.08, 0.2 + 1e-9, 0.005)
+    return Curve(np.outer(z, Z), np.tile(-X, (len(z), 1)), np.tile(-Y, (len(z), 1)), 90.0, False)
+
+
+@pytest.mark.parametrize("radius", [0.02, 0.04])
+def test_a_corner_a_curve_runs_round_is_found_from_the_points_of_its_faces(radius):
+    curves = [round_the_corner(radius), upright_edge()]
+    assert corners(curves, JOIN) == []  # no ends near it, and without the points nothing to read
+    points, normals = pocket_corner()
+    (corner,) = corners(curves, JOIN, points, normals)
+    assert np.linalg.norm(corner.point) < 0.004
+    # A concave corner: its planes face the solid, the pocket inside all three.
+    assert (corner.normals @ np.array([-0.05, -0.05, 0.05]) < corner.offsets).all()
+    assert not (corner.normals @ np.array([0.05, 0.05, -0.05]) < corner.offsets).any()
+    # Without the upright edge among the curves, nothing shows the points' third edge is one.
+    assert corners(curves[:1], JOIN, points, normals) == []
+
+
+def off_the_floor_edges(points: np.ndarray) -> np.ndarray:
+    """How far each of ``points`` (m, 3) lies from the pocket's two floor edges (``pocket_corner``:
+    the lines y = z = 0 for x <= 0 and x = z = 0 for y <= 0), (m,)."""
+    along_x = np.hypot(points[:, 1], points[:, 2]) + np.maximum(points[:, 0], 0.0)
+    along_y = np.hypot(points[:, 0], points[:, 2]) + np.maximum(points[:, 1], 0.0)
+    return np.minimum(along_x, along_y)
+
+
+def test_a_curve_that_runs_round_a_corner_is_cut_there_and_its_pieces_carried_on_to_it():
+    curve = round_the_corner(0.04)
+    assert off_the_floor_edges(curve.points).max() > 0.01  # the arc, 0.0117 off at its middle
+    points, normals = pocket_corner()
+    found = corners([curve, upright_edge()], JOIN, points, normals)
+    pieces = extend_to_corners([curve], found, JOIN, 0.005)
+    assert len(pieces) == 2
+    for piece in pieces:
+        assert off_the_floor_edges(piece.points).max() < 0.004  # the corner's own offset
+        assert np.linalg.norm(np.diff(piece.points, axis=0), axis=1).max() <= 0.005 + 1e-12
+        assert len(piece.left) == len(piece.right) == len(piece.points)
+    ends = np.array([pieces[0].points[-1], pieces[1].points[0]])
+    np.testing.assert_allclose(ends, [found[0].point, found[0].point], atol=1e-12)
+    # A curve that passes the corner on other faces (a parallel edge 0.03 above) is not cut.
+    passing = Curve(curve.points + [0.0, 0.0, 0.03], np.tile(-X, (len(curve.points), 1)), curve.right, 90.0, True)
+    (kept,) = extend_to_corners([passing], found, JOIN, 0.005)
+    np.testing.assert_array_equal(kept.points, passing.points)
+
+
+def test_a_holes_rim_is_no_corner_for_the_points_either():
+    # A hole of radius 0.04 through a plate's top (z = 0): the rim's curve turns all the way round,
+    # and the points show the top and the hole's wall, a cylinder, not three faces.
+    rng = np.random.default_rng(0)
+    radius = 0.04
+    top = rng.uniform(-0.25, 0.25, (6000, 2))
+    top = top[np.linalg.norm(top, axis=1) > radius]
+    angle, depth = rng.uniform(0.0, 2 * np.pi, 1500), rng.uniform(-0.1, 0.0, 1500)
+    around = np.stack([np.cos(angle), np.sin(angle), 0 * angle], 1)
+    points = np.concatenate([np.hstack([top, np.zeros((len(top), 1))]), radius * around + depth[:, None] * Z])
+    points += rng.normal(0.0, 0.005, points.shape)
+    normals = np.concatenate([np.tile(Z, (len(top), 1)), -around])
+    rim_angle = np.linspace(0.0, 2 * np.pi, 51)
+    rim_around = np.stack([np.cos(rim_angle), np.sin(rim_angle), 0 * rim_angle], 1)
+    rim_around[-1] = rim_around[0]
+    rim = Curve(radius * rim_around, np.tile(Z, (51, 1)), -rim_around, 90.0, True)
+    assert corners([rim], JOIN, points, normals) == []
+    # Nor broken into three pieces, whose ends meet.
+    pieces = [
+        Curve(rim.points[a : b + 1], rim.left[a : b + 1], rim.right[a : b + 1], 90.0, True)
+        for a, b in ((0, 17), (17, 34), (34, 50))
+    ]
+    assert corners(pieces, JOIN, points, normals) == []
+
+
+def test_a_corner_crowded_out_of_the_wide_reach_by_larger_faces_is_read_nearer_its_curves_ends():
+    # A box's corner at the origin (faces x, y, z = 0, each 0.2 across) whose three edges stop 0.03
+    # short of it, with the side normals a rounding gives them near a corner (no three faces among
+    # them); within the points' wide reach, six larger faces of other parts, turned other ways:
+    # the corner's own faces are not among the largest groups there.
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-0.2, 0.0, (2, 3, 320))
+    faces = [
+        np.stack([0 * u[0], u[0], v[0]], 1),
+        np.stack([u[1], 0 * u[1], v[1]], 1),
+        np.stack([u[2], v[2], 0 * u[2]], 1),
+    ]
+    others, other_normals = [], []
+    for direction in ([1, 1, 0], [1, -1, 0], [-1, 1, 0], [1, 0, 1], [0, 1, 1], [-1, 0, 1]):
+        normal = unit(np.array([direction], dtype=float))[0]
+        across = unit(np.cross(normal, [0.3, 0.5, 0.8])[None])[0]
+        up = np.cross(normal, across)
+        a, b = rng.uniform(-0.12, 0.12, (2, 700))
+        others.append(0.26 * normal + a[:, None] * across + b[:, None] * up)
+        other_normals.append(np.tile(normal, (700, 1)))
+    points = np.concatenate([*faces, *others]) + rng.normal(0.0, 0.005, (960 + 4200, 3))
+    normals = np.concatenate([np.tile(X, (320, 1)), np.tile(Y, (320, 1)), np.tile(Z, (320, 1)), *other_normals])
+    rounded = unit(np.array([[1.0, 1.0, 1.0]]))[0]
+    curves = [edge(-X, rounded, Y), edge(-Y, rounded, Z), edge(-Z, rounded, X)]
+    for curve in curves:
+        curve.points = curve.points - APEX
+    assert corners(curves, JOIN) == []  # the curves' normals show no three faces
+    (corner,) = corners(curves, JOIN, points, normals)
+    assert np.linalg.norm(corner.point) < 0.004
+
+
+def test_a_shafts_rim_in_pieces_is_no_corner_though_strips_of_its_wall_pass_for_faces():
+    # A round shaft of radius 0.16 along x, ending at x = 0, as noisy points; its rim comes out as
+    # eight curves with gaps of 0.02 between them. Read near, two strips of the wall and the end
+    # face meet at a point by the rim, but no crease runs along the wall between the strips.
+    rng = np.random.default_rng(0)
+    radius = 0.16
+    disc = rng.uniform(-radius, radius, (4000, 2))
+    disc = disc[np.linalg.norm(disc, axis=1) < radius]
+    angle, depth = rng.uniform(0.0, 2 * np.pi, 6000), rng.uniform(-0.3, 0.0, 6000)
+    around = np.stack([0 * angle, np.cos(angle), np.sin(angle)], 1)
+    points = np.concatenate([np.hstack([np.zeros((len(disc), 1)), disc]), radius * around + depth[:, None] * X])
+    points += rng.normal(0.0, 0.005, points.shape)
+    normals = np.concatenate([np.tile(X, (len(disc), 1)), around])
+    pieces = []
+    for start in np.arange(8) * np.pi / 4:
+        rim_angle = np.linspace(start, start + np.pi / 4 - 0.02 / radius, 25)
+        rim_around = np.stack([0 * rim_angle, np.cos(rim_angle), np.sin(rim_angle)], 1)
+        pieces.append(Curve(radius * rim_around, np.tile(X, (25, 1)), rim_around, 90.0, True))
+    assert corners(pieces, JOIN, points, normals) == []
