@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from core.corners import (
+    BEYOND_REACH,
     SNAP_RADIUS,
     Corner,
     _beyond_onto_faces,
@@ -170,9 +171,9 @@ def test_snapping_puts_a_rounded_boxs_corners_back_on_the_mesh():
     before, after = cross(mesh), cross(snapped)
     sided = np.linalg.norm(before, axis=1) > 0
     assert (np.einsum("ij,ij->i", before[sided], after[sided]) > 0).all()
-    # Away from the corners (farther than the join, within which vertices beyond a corner's faces
-    # go onto them) nothing moved.
-    far = np.linalg.norm(mesh.vertices[:, None] - truth.vertices[None], axis=2).min(axis=1) > JOIN + 0.005
+    # Away from the corners (farther than BEYOND_REACH, within which vertices beyond a corner's
+    # faces go onto them) nothing moved.
+    far = np.linalg.norm(mesh.vertices[:, None] - truth.vertices[None], axis=2).min(axis=1) > BEYOND_REACH + 0.005
     np.testing.assert_array_equal(snapped.vertices[far], mesh.vertices[far])
     # No face goes through or touches another, in memory or as an OBJ file writes it.
     for vertices in (snapped.vertices, np.round(snapped.vertices, 8)):
@@ -205,9 +206,9 @@ def test_a_sharp_boxs_mesh_stays_where_it_is():
     move = np.linalg.norm(snapped.vertices - mesh.vertices, axis=1)
     assert move.max() < 0.26 * 1.1 / 160
     to_corner = np.linalg.norm(snapped.vertices[:, None] - truth.vertices[None], axis=2).min(axis=1)
-    # Within SNAP_RADIUS of a corner found (which is within 0.001 of a true one), or within the
-    # join and off a face by a hair (a seventh of a cell at most).
-    assert (to_corner[move > 0] <= JOIN + 0.001).all()
+    # Within SNAP_RADIUS of a corner found (which is within 0.001 of a true one), or within
+    # BEYOND_REACH and off a face by a hair (a seventh of a cell at most).
+    assert (to_corner[move > 0] <= BEYOND_REACH + 0.001).all()
     assert move[to_corner > SNAP_RADIUS + 0.001].max() < 0.001
     assert distance_to_mesh(truth.vertices, snapped.vertices, snapped.faces).max() < 0.001
 
