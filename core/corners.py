@@ -236,7 +236,6 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
     to it within ``join`` whose side normals are that edge's two faces gains samples up to the
     corner (every ``spacing`` or less, with the end's side normals). A part's edges meet at its
     corners, as in its drawing; only the nearest end, since an edge may come out in pieces."""
-    cosine = np.cos(np.radians(SAME_FACE))
     for corner in found:
         curves = [piece for curve in curves for piece in _cut_round(curve, corner, join)]
     chosen: dict[tuple[int, int], np.ndarray] = {}  # (curve, end) -> the corner it goes on to
@@ -247,10 +246,9 @@ def extend_to_corners(curves: list[Curve], found: list[Corner], join: float, spa
                 continue
             for end in (0, -1):
                 gap = float(np.linalg.norm(curve.points[end] - corner.point))
-                alike = np.abs(corner.normals @ np.stack([curve.left[end], curve.right[end]]).T)  # (3, 2)
-                faces = (int(alike[:, 0].argmax()), int(alike[:, 1].argmax()))
-                if 1e-9 < gap <= join and alike.max(axis=0).min() > cosine and faces[0] != faces[1]:
-                    edge = (min(faces), max(faces))
+                faces, on_edge = _corner_edges(corner, curve.left[[end]], curve.right[[end]])
+                if 1e-9 < gap <= join and on_edge[0]:
+                    edge = (int(faces[0, 0]), int(faces[0, 1]))
                     if edge not in nearest or gap < nearest[edge][0]:
                         nearest[edge] = (gap, index, end)
         for _, index, end in nearest.values():
@@ -284,9 +282,7 @@ def _cut_round(curve: Curve, corner: Corner, join: float) -> list[Curve]:
     nearest = int(np.argmin(gap))
     if curve.closed or gap[nearest] > join:
         return [curve]
-    alike = np.abs(np.stack([curve.left, curve.right], axis=1) @ corner.normals.T)  # (m, 2, 3)
-    faces = np.sort(alike.argmax(axis=2), axis=1)
-    on_edge = (alike.max(axis=2) > np.cos(np.radians(SAME_FACE))).all(axis=1) & (faces[:, 0] != faces[:, 1])
+    faces, on_edge = _corner_edges(corner, curve.left, curve.right)
     rounding = ~on_edge & (gap <= join)
     if not rounding[nearest]:
         return [curve]
@@ -304,6 +300,16 @@ def _cut_round(curve: Curve, corner: Corner, join: float) -> list[Curve]:
         Curve(curve.points[part], curve.left[part], curve.right[part], curve.dihedral, curve.convex)
         for part in (slice(0, first), slice(last + 1, None))
     ]
+
+
+def _corner_edges(corner: Corner, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For curve samples with side normals ``left`` and ``right`` (m, 3): the two of ``corner``'s
+    faces nearest their sides, in order (m, 2), and whether they lie on one of its edges (m,):
+    each side within ``SAME_FACE`` of one of its faces, and the two faces different."""
+    alike = np.abs(np.stack([left, right], axis=1) @ corner.normals.T)  # (m, 2, 3)
+    faces = alike.argmax(axis=2)
+    on_edge = (alike.max(axis=2) > np.cos(np.radians(SAME_FACE))).all(axis=1) & (faces[:, 0] != faces[:, 1])
+    return np.sort(faces, axis=1), on_edge
 
 
 def corners(
@@ -332,11 +338,12 @@ def corners(
     # A nearer look where the wide reach took in other parts' faces larger than the corner's, and
     # where a curve bends round a corner; second, since it is the less sure.
     bends = [(bend, bend[None]) for curve in curves for bend in _bends(curve.points)]
+    samples = np.concatenate([curve.points for curve in curves]) if curves else np.zeros((0, 3))
     for centre, ends in [*unresolved, *bends]:
         if any(np.linalg.norm(corner.point - centre) <= join for corner in found):
             continue
         corner = _corner_of_points(centre, ends, points, normals, BEND_POINTS_REACH)
-        if corner is None or _gap(corner, ends) > join or not _edges_seen(corner, curves):
+        if corner is None or _gap(corner, ends) > join or not _edges_seen(corner, samples):
             continue
         if not any(np.linalg.norm(corner.point - other.point) <= join for other in found):
             found.append(corner)
@@ -378,11 +385,11 @@ def _corners_at_ends(
     return found, unresolved
 
 
-def _edges_seen(corner: Corner, curves: list[Curve]) -> bool:
-    """Whether ``curves`` show each of ``corner``'s three edges: ``SEEN_SAMPLES`` of their samples
-    within ``BEND_POINTS_REACH`` of it lie within ``SEEN_BAND`` of the line two of its planes share,
-    farther than twice that from the corner along it."""
-    samples = np.concatenate([curve.points for curve in curves]) - corner.point
+def _edges_seen(corner: Corner, samples: np.ndarray) -> bool:
+    """Whether the curves' ``samples`` (s, 3) show each of ``corner``'s three edges: ``SEEN_SAMPLES``
+    of them within ``BEND_POINTS_REACH`` of it lie within ``SEEN_BAND`` of the line two of its
+    planes share, farther than twice that from the corner along it."""
+    samples = samples - corner.point
     samples = samples[np.linalg.norm(samples, axis=1) <= BEND_POINTS_REACH]
     for i, j in ((0, 1), (0, 2), (1, 2)):
         along = unit(np.cross(corner.normals[i], corner.normals[j])[None])[0]
