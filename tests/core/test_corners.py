@@ -407,17 +407,23 @@ def test_no_corner_from_the_points_where_convex_and_concave_edges_meet():
     assert _corner_of_points(centre, centre[None], points, normals) is None
 
 
-def test_of_the_faces_the_points_show_those_meeting_nearest_the_curves_ends_make_the_corner():
-    # A box's corner at the origin (faces x, y, z = 0, each 0.2 across), and within the reach a
-    # larger face of another part, z = -0.3 facing down: more points than any of the corner's.
-    rng = np.random.default_rng(0)
+def box_corner_faces(rng: np.random.Generator) -> list[np.ndarray]:
+    """Points (320, 3) drawn uniformly on each of the three faces x, y and z = 0 of a box's corner
+    at the origin, each 0.2 across (the box on the negative side), without noise."""
     u, v = rng.uniform(-0.2, 0.0, (2, 3, 320))
-    big = np.hstack([rng.uniform(-0.4, 0.4, (2, 5000)).T, np.full((5000, 1), -0.3)])
-    faces = [
+    return [
         np.stack([0 * u[0], u[0], v[0]], 1),
         np.stack([u[1], 0 * u[1], v[1]], 1),
         np.stack([u[2], v[2], 0 * u[2]], 1),
     ]
+
+
+def test_of_the_faces_the_points_show_those_meeting_nearest_the_curves_ends_make_the_corner():
+    # A box's corner at the origin (faces x, y, z = 0, each 0.2 across), and within the reach a
+    # larger face of another part, z = -0.3 facing down: more points than any of the corner's.
+    rng = np.random.default_rng(0)
+    faces = box_corner_faces(rng)
+    big = np.hstack([rng.uniform(-0.4, 0.4, (2, 5000)).T, np.full((5000, 1), -0.3)])
     points = np.concatenate([*faces, big]) + rng.normal(0.0, 0.005, (960 + 5000, 3))
     normals = np.concatenate([np.tile(X, (320, 1)), np.tile(Y, (320, 1)), np.tile(Z, (320, 1)), np.tile(-Z, (5000, 1))])
     ends = np.array([[-0.03, 0.0, 0.0], [0.0, -0.03, 0.0], [0.0, 0.0, -0.03]])
@@ -545,12 +551,7 @@ def test_a_corner_crowded_out_of_the_wide_reach_by_larger_faces_is_read_nearer_i
     # them); within the points' wide reach, six larger faces of other parts, turned other ways:
     # the corner's own faces are not among the largest groups there.
     rng = np.random.default_rng(0)
-    u, v = rng.uniform(-0.2, 0.0, (2, 3, 320))
-    faces = [
-        np.stack([0 * u[0], u[0], v[0]], 1),
-        np.stack([u[1], 0 * u[1], v[1]], 1),
-        np.stack([u[2], v[2], 0 * u[2]], 1),
-    ]
+    faces = box_corner_faces(rng)
     others, other_normals = [], []
     for direction in ([1, 1, 0], [1, -1, 0], [-1, 1, 0], [1, 0, 1], [0, 1, 1], [-1, 0, 1]):
         normal = unit(np.array([direction], dtype=float))[0]
