@@ -16,7 +16,10 @@ by the fit's normals there; and where a curve runs round a corner whose third ed
 it (a pocket's floor corner), from the points around its bend. The same walks, run onto the third
 face, also read tilted planes that meet beyond the true faces, and the sharpening pushes vertices
 near a corner past them (into the solid of a concave corner, out of a convex one's); those go back
-onto the corner's faces too.
+onto the corner's faces too. At a saddle (a slot's end, where its concave edge meets the end face's
+convex ones) the fit rounds the convex edges from the solid and fills the concave one from the
+empty side: there every vertex near the corner off its faces may go onto them, as far as the points
+agree.
 """
 
 from __future__ import annotations
@@ -112,11 +115,34 @@ SEEN_BAND = 0.015
 class Corner:
     """A corner: its ``point`` (3,), and the planes of its three faces, ``normals`` (3, 3) and
     ``offsets`` (3,), oriented so that n·x <= offset holds on the side the fit rounds it from (the
-    solid of a convex corner, the empty space of a concave one)."""
+    solid of a convex corner, the empty space of a concave one): the corner's region is inside all
+    three. A saddle (a concave edge meeting two convex ones, or a convex edge two concave ones) has
+    the face ``apart`` whose two edges are alike: its region is inside that plane and inside
+    either of the other two (the solid where the odd edge is concave, the empty space where it is
+    convex), so that every edge of it but the odd one is rounded from inside it."""
 
     point: np.ndarray
     normals: np.ndarray
     offsets: np.ndarray
+    apart: int | None = None
+
+    def inside(self, points: np.ndarray) -> np.ndarray:
+        """How far each of ``points`` (m, 3) lies inside each plane (m, 3); negative outside."""
+        return self.offsets[None] - points @ self.normals.T
+
+    def region(self, inside: np.ndarray) -> np.ndarray:
+        """Whether points that lie ``inside`` (m, 3) each plane by so much are in the region (m,)."""
+        within = np.asarray(inside >= 0)
+        if self.apart is None:
+            return np.all(within, axis=1)
+        first, second = (index for index in range(3) if index != self.apart)
+        return (within[:, first] | within[:, second]) & within[:, self.apart]
+
+    def on_faces(self, points: np.ndarray) -> np.ndarray:
+        """Whether each of ``points`` (m, 3) lies on the region's boundary (within ``_INSIDE``): its
+        faces, edges or the corner itself (m,)."""
+        inside = self.inside(points)
+        return self.region(inside + _INSIDE) & ~self.region(inside - _INSIDE)
 
 
 @dataclass
@@ -142,12 +168,13 @@ def snap_corners(
     With the input ``points`` (n, 3, unit frame) and the fit's ``normals`` (n, 3) at them, the
     corners are found as ``corners`` finds them with those. For each corner the nearest vertex
     within ``join`` goes onto its point (or the next nearest, of ``_CANDIDATES``, where that would
-    turn a face over); then each vertex within ``SNAP_RADIUS`` that lies inside all three faces'
-    planes (the rounding) goes onto the nearest point of the faces, unless a face of it would turn
-    over. A moved vertex of a face that then crosses or touches another (``core.intersections``)
-    goes back where it was: on featuretype two faces did. Last, the vertices within
-    ``BEYOND_REACH`` beyond one of the planes go onto the faces (``_beyond_onto_faces``), and back
-    again where a face of theirs then crosses another. Returns a new mesh, same faces."""
+    turn a face over); then, at a corner whose edges are alike, each vertex within ``SNAP_RADIUS``
+    that lies inside all three faces' planes (the rounding) goes onto the nearest point of the
+    faces, unless a face of it would turn over. A moved vertex of a face that then crosses or
+    touches another (``core.intersections``) goes back where it was: on featuretype two faces did.
+    Last, the vertices within ``BEYOND_REACH`` beyond one of the planes (any off a saddle's faces)
+    go onto the faces (``_beyond_onto_faces``), and back again where a face of theirs then crosses
+    another. Returns a new mesh, same faces."""
     found = corners(curves, join, points, normals)
     if not found:
         return mesh, found
@@ -162,7 +189,7 @@ def snap_corners(
                 break
         around = np.asarray(tree.query_ball_point(corner.point, SNAP_RADIUS), dtype=np.int64)
         for vertex in around[np.argsort(np.linalg.norm(vertices[around] - corner.point, axis=1))]:
-            if (corner.normals @ vertices[vertex] < corner.offsets - _INSIDE).all():
+            if corner.apart is None and (corner.inside(vertices[vertex][None]) > _INSIDE).all():
                 _move(vertices, faces[faces_of[vertex].indices], vertex, _onto_faces(vertices[vertex], corner))
     snapped = uncrossed(vertices, mesh.vertices, faces)
     vertices = _beyond_onto_faces(snapped, faces, found, BEYOND_REACH, points)
@@ -173,8 +200,9 @@ def _beyond_onto_faces(
     vertices: np.ndarray, faces: np.ndarray, found: list[Corner], reach: float, points: np.ndarray | None = None
 ) -> np.ndarray:
     """``vertices`` (v, 3) with each one within ``reach`` of a corner of ``found`` that lies beyond
-    one of its planes moved onto the nearest point of its faces (``_onto_faces``), if that is no
-    more than ``BEYOND_MOVE`` away and, given the input ``points`` (n, 3), brings it nearer them
+    one of its planes (off its faces either way, at a saddle, whose rounding lies on both sides)
+    moved onto the nearest point of its faces (``_onto_faces``), if that is no more than
+    ``BEYOND_MOVE`` away and, given the input ``points`` (n, 3), brings it nearer them
     (the mean distance to its ``_NEAREST_POINTS`` nearest); ``faces`` (f, 3).
 
     Near a corner the sharpening reads planes tilted by the third face's rounding, which meet past
@@ -189,7 +217,10 @@ def _beyond_onto_faces(
     tree = kd_tree(vertices)
     for corner in found:
         around = np.asarray(tree.query_ball_point(corner.point, reach), dtype=np.int64)
-        beyond = around[(vertices[around] @ corner.normals.T > corner.offsets + _INSIDE).any(axis=1)]
+        off = ~corner.region(corner.inside(vertices[around]) + _INSIDE)  # beyond a plane of the region
+        if corner.apart is not None:  # a saddle's rounding lies on either side
+            off = ~corner.on_faces(vertices[around])
+        beyond = around[off]
         onto = np.array([_onto_faces(vertices[vertex], corner) for vertex in beyond]).reshape(-1, 3)
         moved = np.linalg.norm(onto - vertices[beyond], axis=1) <= BEYOND_MOVE
         beyond, onto = beyond[moved], onto[moved]
@@ -322,8 +353,10 @@ def corners(
     sets of normals within ``SAME_FACE`` of one another are the faces; the corner is the point
     on all three planes (each plane through the samples that carry its normal, at their median
     offset), kept if every pair of the faces meets at ``MIN_SUPPORT`` samples or more and the
-    corner lies within ``join`` of the group's centre. Closed curves (loops) have no ends; a corner
-    where convex and concave edges meet (a saddle) is left out.
+    corner lies within ``join`` of the group's centre; where the centre shows none, each end of
+    the group is read so in turn (the ends along an edge shorter than twice ``join`` link its two
+    corners' groups in one). Closed curves (loops) have no ends. A corner where a concave edge meets
+    two convex ones, or the reverse, is a saddle (``Corner.apart``).
 
     With the input ``points`` (n, 3), each such corner's planes are refitted to them
     (``_refitted``); with the fit's ``normals`` (n, 3) at them as well, a group whose curves show no
@@ -372,10 +405,23 @@ def _corners_at_ends(
         if len(np.unique(members // 2)) < 2:  # one curve's two ends: no corner
             continue
         centre = ends[members].mean(axis=0)
-        near = np.asarray(tree.query_ball_point(centre, CORNER_REACH), dtype=np.int64)
-        corner = _meeting_point(samples[near], left[near], right[near], convex[near])
-        if corner is not None and np.linalg.norm(corner.point - centre) <= join:
-            found.append(corner if points is None else _refitted(corner, points, join))
+
+        def meeting(at: np.ndarray) -> Corner | None:
+            near = np.asarray(tree.query_ball_point(at, CORNER_REACH), dtype=np.int64)
+            corner = _meeting_point(samples[near], left[near], right[near], convex[near])
+            return corner if corner is not None and np.linalg.norm(corner.point - at) <= join else None
+
+        meetings = [corner for corner in [meeting(centre)] if corner is not None]
+        if not meetings:
+            # The ends along an edge shorter than twice the join link two corners' groups in one
+            # (the wedge's slot wall meets its end face over 0.1), whose centre lies between them
+            # and sees four faces: each end is read on its own.
+            for end in ends[members]:
+                corner = meeting(end)
+                if corner is not None and all(np.linalg.norm(corner.point - other.point) > join for other in meetings):
+                    meetings.append(corner)
+        if meetings:
+            found.extend(corner if points is None else _refitted(corner, points, join) for corner in meetings)
         elif points is not None and normals is not None:
             corner = _corner_of_points(centre, ends[members], points, normals)
             if corner is not None and _gap(corner, ends[members]) <= join:
@@ -431,7 +477,8 @@ def _bends(points: np.ndarray) -> np.ndarray:
 def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, convex: np.ndarray) -> Corner | None:
     """The point where the three faces of the curve samples ``points`` (m, 3), with side normals
     ``left`` and ``right`` (m, 3) and their curves' ``convex`` (m,), meet; None unless the samples
-    show three faces that meet pairwise, on edges all convex or all concave."""
+    show three faces that meet pairwise, each edge's samples all convex or all concave (a saddle
+    where the edges differ)."""
     normals = np.concatenate([left, right])
     face = np.full(len(normals), -1)
     for index, members in enumerate(_faces(normals)[:3]):
@@ -445,19 +492,26 @@ def _meeting_point(points: np.ndarray, left: np.ndarray, right: np.ndarray, conv
         if np.count_nonzero(edge) < MIN_SUPPORT:
             return None
         on_edge |= edge
-    # Only corners whose edges are all convex or all concave: at the sample parts' saddles (a
-    # concave edge meeting convex ones) the point moved the mesh away from the truth (box_hole's
-    # d_H 0.0098 -> 0.0114, l_bracket's 0.0102 -> 0.0114, docs/benchmarks.md). The creases of a
-    # rounded corner's own facets, either way, do not count.
-    if convex[on_edge].min() != convex[on_edge].max():
-        return None
     on = np.concatenate([points, points])
     planes = unit(np.array([normals[face == index].mean(axis=0) for index in range(3)]))
     if abs(np.linalg.det(planes)) < MIN_DETERMINANT:
         return None
     offsets = np.array([np.median(on[face == index] @ planes[index]) for index in range(3)])
-    sign = 1.0 if convex[on_edge][0] else -1.0
-    return Corner(np.linalg.solve(planes, offsets), sign * planes, sign * offsets)
+    point = np.linalg.solve(planes, offsets)
+    # The side normals are the mesh's, outward of the solid. Each edge's samples must agree on
+    # whether it is convex (the creases of a rounded corner's own facets, either way, are no edge).
+    kinds = [set(convex[(sides == pair).all(axis=1)].tolist()) for pair in ((0, 1), (0, 2), (1, 2))]
+    if any(len(kind) > 1 for kind in kinds):
+        return None
+    edge_convex = [kind.pop() for kind in kinds]
+    if len(set(edge_convex)) == 1:
+        sign = 1.0 if edge_convex[0] else -1.0
+        return Corner(point, sign * planes, sign * offsets)
+    # A saddle: the odd edge's faces are the two other than the one apart.
+    odd = [edge_convex.count(kind) for kind in edge_convex].index(1)
+    apart = 2 - odd  # edges (0, 1), (0, 2), (1, 2) leave out faces 2, 1, 0
+    sign = -1.0 if edge_convex[odd] else 1.0
+    return Corner(point, sign * planes, sign * offsets, apart)
 
 
 def _corner_of_points(
@@ -548,8 +602,7 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
         inside = offsets[None] - near @ planes.T  # (n, 3): how far inside each plane
         refit_normals, refit_offsets, spreads = [], [], []
         for index in range(3):
-            others = [other for other in range(3) if other != index]
-            on_face = (np.abs(inside[:, index]) < _REFIT_BAND) & (inside[:, others] > PLANE_BAND).all(axis=1)
+            on_face = (np.abs(inside[:, index]) < _REFIT_BAND) & _off_rounding(corner, inside, index)
             if np.count_nonzero(on_face) < _REFIT_POINTS:
                 return corner
             normal, offset, spread = _plane(near[on_face], planes[index])
@@ -562,7 +615,19 @@ def _refitted(corner: Corner, points: np.ndarray, join: float) -> Corner:
     point = np.linalg.solve(planes, offsets)
     if np.linalg.norm(point - corner.point) > join:
         return corner
-    return Corner(point, planes, offsets)
+    return Corner(point, planes, offsets, corner.apart)
+
+
+def _off_rounding(corner: Corner, inside: np.ndarray, index: int) -> np.ndarray:
+    """Whether points that lie ``inside`` (m, 3) each of ``corner``'s planes by so much lie over
+    its face ``index`` (m,): farther than ``PLANE_BAND`` from the other two planes (off the
+    rounding), where that plane bounds the corner's region (inside the other two at a corner whose
+    edges are alike; at a saddle, outside the odd edge's other face as well, or inside either)."""
+    others = [other for other in range(3) if other != index]
+    above, below = inside.copy(), inside.copy()
+    above[:, index], below[:, index] = 1.0, -1.0
+    clear = (np.abs(inside[:, others]) > PLANE_BAND).all(axis=1)
+    return clear & (corner.region(above) != corner.region(below))
 
 
 def _plane(points: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -605,12 +670,12 @@ def _move(vertices: np.ndarray, around: np.ndarray, vertex: int, target: np.ndar
 
 
 def _onto_faces(point: np.ndarray, corner: Corner) -> np.ndarray:
-    """The nearest point to ``point`` (3,), inside all of ``corner``'s planes, that lies on one of
-    them: on a face, on an edge (two faces' line through the corner) or the corner itself."""
+    """The nearest point to ``point`` (3,) on ``corner``'s faces (``Corner.on_faces``): on a face,
+    on an edge (two faces' line through the corner) or the corner itself."""
     normals, offsets, apex = corner.normals, corner.offsets, corner.point
     candidates = [point - (normals[i] @ point - offsets[i]) * normals[i] for i in range(3)]
     for i, j in ((0, 1), (0, 2), (1, 2)):
         along = unit(np.cross(normals[i], normals[j])[None])[0]
         candidates.append(apex + ((point - apex) @ along) * along)
-    inside = [candidate for candidate in candidates if (normals @ candidate <= offsets + _INSIDE).all()]
-    return min([apex, *inside], key=lambda candidate: float(np.linalg.norm(candidate - point)))
+    on = [candidate for candidate, kept in zip(candidates, corner.on_faces(np.array(candidates)), strict=True) if kept]
+    return min([apex, *on], key=lambda candidate: float(np.linalg.norm(candidate - point)))

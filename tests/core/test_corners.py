@@ -14,6 +14,7 @@ from core.corners import (
     Corner,
     _beyond_onto_faces,
     _corner_of_points,
+    _onto_faces,
     _refitted,
     corners,
     extend_to_corners,
@@ -67,10 +68,109 @@ def test_a_concave_corner_has_its_planes_turned_to_the_empty_side():
     assert (corner.normals @ (APEX + 0.01) <= corner.offsets).all()
 
 
-def test_no_corner_where_convex_and_concave_edges_meet():
-    curves = cube_corner()
-    curves[0].convex = False
-    assert corners(curves, JOIN) == []
+def saddle(odd_convex: bool = False) -> list[Curve]:
+    """The end (y = APEX's) of a bar with a step cut along it, at APEX: the step's wall (x = APEX's)
+    meets its floor (z = APEX's) on a concave edge, and the end face the two on convex edges; from
+    APEX the solid is (x <= 0 or z <= 0) and y <= 0. With ``odd_convex`` the same surface turned
+    inside out: the faces' normals turned, the edges' kinds swapped. Each edge stops 0.03 short of
+    APEX."""
+    sign = -1.0 if odd_convex else 1.0
+    return [
+        edge(-Y, sign * X, sign * Z, convex=odd_convex),
+        edge(Z, sign * X, sign * Y, convex=not odd_convex),
+        edge(X, sign * Z, sign * Y, convex=not odd_convex),
+    ]
+
+
+@pytest.mark.parametrize("odd_convex", [False, True])
+def test_a_saddle_where_a_concave_edge_meets_two_convex_ones_is_a_corner(odd_convex):
+    (corner,) = corners(saddle(odd_convex), JOIN)
+    np.testing.assert_allclose(corner.point, APEX, atol=1e-12)
+    # The end face is the one apart: its two edges are alike.
+    assert corner.apart is not None and abs(corner.normals[corner.apart] @ Y) > 0.999
+    # Its region is the solid where the odd edge is concave, the empty space where it is convex:
+    # the bar's solid both times (turned inside out, that is the empty space), here tried 0.01 off
+    # every face on either side.
+    offsets = np.array([[-1, -1, 1], [1, -1, -1], [-1, -1, -1], [1, -1, 1], [-1, 1, -1], [1, 1, 1]]) * 0.01
+    bar = ((offsets[:, 0] <= 0) | (offsets[:, 2] <= 0)) & (offsets[:, 1] <= 0)
+    np.testing.assert_array_equal(corner.region(corner.inside(APEX + offsets)), bar)
+
+
+def test_a_point_by_a_saddle_goes_onto_the_nearest_of_its_faces():
+    (corner,) = corners(saddle(), JOIN)
+    # In the solid by the wall's convex edge with the end face, nearer the end face: onto it, not
+    # onto the wall's plane, which runs inside the solid there (below the step's floor).
+    inside = APEX + np.array([-0.004, -0.002, -0.05])
+    np.testing.assert_allclose(_onto_faces(inside, corner), APEX + [-0.004, 0.0, -0.05], atol=1e-12)
+    # In the step's empty corner by its concave edge, nearer the floor: onto the floor.
+    slot = APEX + np.array([0.006, -0.05, 0.002])
+    np.testing.assert_allclose(_onto_faces(slot, corner), APEX + [0.006, -0.05, 0.0], atol=1e-12)
+    # Beyond the end face, over the step: onto the wall's edge with the end face, the nearest.
+    out = APEX + np.array([0.003, 0.003, 0.02])
+    np.testing.assert_allclose(_onto_faces(out, corner), APEX + [0.0, 0.0, 0.02], atol=1e-12)
+
+
+SLOT_CENTRE, SLOT_HALF = np.array([0.0, 0.0, -HALF[2]]), np.array([HALF[0] + 0.1, 0.08, 0.1])
+# Where the slot's walls meet its top at the bar's two ends.
+SADDLES = np.array([[x * HALF[0], y * SLOT_HALF[1], SLOT_HALF[2] - HALF[2]] for x in (-1, 1) for y in (-1, 1)])
+
+
+def slotted(x: np.ndarray) -> np.ndarray:
+    """The box with a slot 0.16 wide and 0.1 deep cut along x through its base (as the wedge's):
+    at each end of the slot its concave edges meet the end face's convex ones, four saddles."""
+    return np.maximum(box(x), -box(x - SLOT_CENTRE, SLOT_HALF))
+
+
+@functools.cache
+def slotted_bar() -> tuple[trimesh.Trimesh, list[Curve]]:
+    """The slotted bar dual-contoured with sharpening at 160 cells, and its curves."""
+    grid = sample_grid(slotted, 160, LOW, HIGH)
+    mesh = dual_contour(grid, slotted, lambda x: (slotted(x), gradient(slotted, x)), sharpen=True)
+    return mesh, edge_curves(mesh, 30.0, 0.02, 0.005)
+
+
+def test_a_slotted_bars_saddles_are_found_and_vertices_pushed_off_them_go_back():
+    mesh, curves = slotted_bar()
+    saddles = [corner for corner in corners(curves, JOIN) if corner.apart is not None]
+    assert len(saddles) == 4
+    assert max(np.linalg.norm(SADDLES - corner.point, axis=1).min() for corner in saddles) < 0.002
+    # The vertices within 0.04 of one saddle pushed by up to 0.017 along one diagonal, into the
+    # slot and past the end face, up to 0.01 off its faces (into the solid by the slot's top): those
+    # go back onto its faces, half or a quarter of the way where a face would fold (as at a convex
+    # corner, test_vertices_pushed_past_a_corners_faces_go_back_onto_them).
+    reach = np.linalg.norm(mesh.vertices - SADDLES[3], axis=1)
+    pushed = mesh.copy()
+    direction = unit(np.array([[1.0, -1.0, -1.0]]))
+    pushed.vertices = mesh.vertices + 0.017 * np.clip(1.0 - reach / 0.04, 0.0, None)[:, None] * direction
+    snapped, _ = snap_corners(pushed, curves, JOIN)
+    before, after = np.abs(slotted(pushed.vertices)), np.abs(slotted(snapped.vertices))
+    assert before.max() > 0.0095 and np.count_nonzero(before > 0.002) > 80
+    assert after.max() < 0.0051 and np.count_nonzero(after > 0.002) <= 15
+    assert len(crossing_faces(snapped.vertices, snapped.faces, np.arange(len(snapped.faces)))) == 0
+
+
+def test_the_ends_along_an_edge_shorter_than_twice_the_join_are_read_one_by_one():
+    # The saddle above with a top face 0.1 over the step's floor: the wall meets it and the end
+    # face at a convex corner, TOP, at the wall's other end. The wall's edge with the end face
+    # comes out in two pieces, whose ends link both corners' ends into one group; its centre, half
+    # way up the wall, sees the floor's and the top's edges alike and no corner.
+    top = APEX + 0.1 * Z
+    notch, _, floor_end = saddle()  # the wall's edge with the end face in pieces instead
+    pieces = [
+        Curve(APEX + t[:, None] * Z, np.tile(X, (len(t), 1)), np.tile(Y, (len(t), 1)), 90.0, True)
+        for t in (np.arange(0.03, 0.045 + 1e-9, 0.005), np.arange(0.055, 0.07 + 1e-9, 0.005))
+    ]
+    top_edges = [
+        Curve(top - t[:, None] * axis, np.tile(Z, (len(t), 1)), np.tile(side, (len(t), 1)), 90.0, True)
+        for axis, side in ((X, Y), (Y, X))
+        for t in [np.arange(0.03, 0.2 + 1e-9, 0.005)]
+    ]
+    found = corners([notch, floor_end, *pieces, *top_edges], JOIN)
+    points = sorted((tuple(corner.point), corner.apart is not None) for corner in found)
+    assert len(points) == 2
+    np.testing.assert_allclose(points[0][0], APEX, atol=1e-12)
+    np.testing.assert_allclose(points[1][0], top, atol=1e-12)
+    assert [saddle_ for _, saddle_ in points] == [True, False]
 
 
 def test_no_corner_where_the_ends_lie_farther_apart_than_the_join():
