@@ -415,10 +415,12 @@ def _corners_at_ends(
         if not meetings:
             # The ends along an edge shorter than twice the join link two corners' groups in one
             # (the wedge's slot wall meets its end face over 0.1), whose centre lies between them
-            # and sees four faces: each end is read on its own.
+            # and sees four faces: each end is read on its own (one corner may show from two groups).
             for end in ends[members]:
                 corner = meeting(end)
-                if corner is not None and all(np.linalg.norm(corner.point - other.point) > join for other in meetings):
+                if corner is not None and all(
+                    np.linalg.norm(corner.point - other.point) > join for other in [*found, *meetings]
+                ):
                     meetings.append(corner)
         if meetings:
             found.extend(corner if points is None else _refitted(corner, points, join) for corner in meetings)
