@@ -423,7 +423,13 @@ def _corners_at_ends(
                 ):
                     meetings.append(corner)
         if meetings:
-            found.extend(corner if points is None else _refitted(corner, points, join) for corner in meetings)
+            for corner in meetings:
+                refitted = corner if points is None else _refitted(corner, points, join)
+                # A saddle only where its planes refit to the points: on a small hole's rim, strips of
+                # its wall between the fit's creases pass for two faces meeting on a concave edge
+                # (six saddles on the flange's bolt holes, whose refit held at one).
+                if corner.apart is None or points is None or refitted is not corner:
+                    found.append(refitted)
         elif points is not None and normals is not None:
             corner = _corner_of_points(centre, ends[members], points, normals)
             if corner is not None and _gap(corner, ends[members]) <= join:

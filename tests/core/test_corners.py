@@ -96,6 +96,30 @@ def test_a_saddle_where_a_concave_edge_meets_two_convex_ones_is_a_corner(odd_con
     np.testing.assert_array_equal(corner.region(corner.inside(APEX + offsets)), bar)
 
 
+def step_faces(rng: np.random.Generator, count: int = 600) -> np.ndarray:
+    """Points (about 3 * count / 2, 3) with noise 0.002 on the three faces of ``saddle``'s step
+    within 0.15 of APEX: the wall (x = 0, z > 0), the floor (z = 0, x > 0), both for y < 0, and the
+    end face (y = 0) where x < 0 or z < 0, all from APEX."""
+    u, v = rng.uniform(-0.15, 0.15, (2, 3, count))
+    wall = np.stack([0 * u[0], -np.abs(u[0]), np.abs(v[0])], 1)
+    floor = np.stack([np.abs(u[1]), -np.abs(v[1]), 0 * u[1]], 1)
+    end = np.stack([u[2], 0 * u[2], v[2]], 1)
+    end = end[(end[:, 0] < 0) | (end[:, 2] < 0)]
+    faces = np.concatenate([wall, floor, end])
+    return APEX + faces + rng.normal(0.0, 0.002, faces.shape)
+
+
+def test_a_saddle_is_kept_only_where_its_planes_refit_to_the_points():
+    # On a small hole's rim, strips of the wall between the fit's creases pass for two faces of a
+    # saddle in the curves; the points there do not lie on such planes.
+    rng = np.random.default_rng(0)
+    on_faces = step_faces(rng)
+    (corner,) = corners(saddle(), JOIN, on_faces, np.zeros_like(on_faces))
+    np.testing.assert_allclose(corner.point, APEX, atol=0.002)
+    elsewhere = APEX + rng.normal(0.0, 0.002, (900, 3)) + [0.5, 0.5, 0.5]  # no face of it near
+    assert corners(saddle(), JOIN, elsewhere, np.zeros_like(elsewhere)) == []
+
+
 def test_a_point_by_a_saddle_goes_onto_the_nearest_of_its_faces():
     (corner,) = corners(saddle(), JOIN)
     # In the solid by the wall's convex edge with the end face, nearer the end face: onto it, not
