@@ -217,8 +217,9 @@ def _beyond_onto_faces(
     tree = kd_tree(vertices)
     for corner in found:
         around = np.asarray(tree.query_ball_point(corner.point, reach), dtype=np.int64)
-        off = ~corner.region(corner.inside(vertices[around]) + _INSIDE)  # beyond a plane of the region
-        if corner.apart is not None:  # a saddle's rounding lies on either side
+        if corner.apart is None:  # beyond a plane of the region
+            off = ~corner.region(corner.inside(vertices[around]) + _INSIDE)
+        else:  # a saddle's rounding lies on either side: every vertex off its faces
             off = ~corner.on_faces(vertices[around])
         beyond = around[off]
         onto = np.array([_onto_faces(vertices[vertex], corner) for vertex in beyond]).reshape(-1, 3)
@@ -400,17 +401,18 @@ def _corners_at_ends(
     tree = kd_tree(samples)
     found: list[Corner] = []
     unresolved: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def meeting(at: np.ndarray) -> Corner | None:
+        """The corner the samples within ``CORNER_REACH`` of ``at`` show, if within ``join`` of it."""
+        near = np.asarray(tree.query_ball_point(at, CORNER_REACH), dtype=np.int64)
+        corner = _meeting_point(samples[near], left[near], right[near], convex[near])
+        return corner if corner is not None and np.linalg.norm(corner.point - at) <= join else None
+
     for label in np.unique(group):
         members = np.flatnonzero(group == label)
         if len(np.unique(members // 2)) < 2:  # one curve's two ends: no corner
             continue
         centre = ends[members].mean(axis=0)
-
-        def meeting(at: np.ndarray) -> Corner | None:
-            near = np.asarray(tree.query_ball_point(at, CORNER_REACH), dtype=np.int64)
-            corner = _meeting_point(samples[near], left[near], right[near], convex[near])
-            return corner if corner is not None and np.linalg.norm(corner.point - at) <= join else None
-
         meetings = [corner for corner in [meeting(centre)] if corner is not None]
         if not meetings:
             # The ends along an edge shorter than twice the join link two corners' groups in one
