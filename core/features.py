@@ -31,6 +31,11 @@ SIDE_STEP = 0.04  # unit frame: past a fitted edge's rounding band (0.03 left mo
 FLAT_TURNING = 5.0  # degrees the normal may turn from one to one and a half steps on a face (radius 0.2: 5.7)
 MAX_OFFSET = 0.02  # unit frame: the farthest a crossing lies from a face's plane beside it (rounding)
 EDGE_TURNING = 25.0  # degrees between the two faces' normals for an edge (faces meeting at up to 155°)
+# Degrees between the two faces' normals beyond which they are the two sides of a wall thinner than
+# a walk (nearly opposite), read across its rounded end, not the faces of one edge: their planes
+# meet far off or not at all, and a U-channel's wall tops 0.03 thick, mixed with the rounding's own
+# planes, went 0.025 above the truth. The sharpest edges asked for meet at 35° (normals 145° apart).
+MAX_EDGE_TURNING = 160.0
 # Unit frame: the widest band over which the normal may turn from one face's to the other's (from
 # 10 % to 90 % of the way) at an edge. A fit rounds a sharp edge over 0.02 to 0.035 (90 % of the
 # walks across the sample CAD shapes' edges, featuretype's 0.055); a smooth bend of radius R
@@ -80,10 +85,12 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     start, direction = crossings[candidates[walker]], across[walker]
     walks = [_walk(start, sign * direction, derivatives_at) for sign in (1.0, -1.0)]
     (point_a, normal_a, turns_a, read_a), (point_b, normal_b, turns_b, read_b) = [_face_beside(*w) for w in walks]
+    cosine = np.einsum("ij,ij->i", normal_a, normal_b)
     edge = (
         (read_a > 0)
         & (read_b > 0)
-        & (np.einsum("ij,ij->i", normal_a, normal_b) < np.cos(np.radians(EDGE_TURNING)))
+        & (cosine < np.cos(np.radians(EDGE_TURNING)))
+        & (cosine > np.cos(np.radians(MAX_EDGE_TURNING)))
         & _wall_turns_on(read_a, normal_b, normal_a, walks[0][1][:, -1])
         & _wall_turns_on(read_b, normal_a, normal_b, walks[1][1][:, -1])
     )
