@@ -36,6 +36,11 @@ EDGE_TURNING = 25.0  # degrees between the two faces' normals for an edge (faces
 # meet far off or not at all, and a U-channel's wall tops 0.03 thick, mixed with the rounding's own
 # planes, went 0.025 above the truth. The sharpest edges asked for meet at 35° (normals 145° apart).
 MAX_EDGE_TURNING = 160.0
+# A side whose normal turns at each step of the walk's far end by at most this many degrees (a
+# radius of 0.072 or more), steadily (the two steps within STEADY_TURNING), is a curved face: a
+# shaft's surface beside a flat or a keyway (``_curved_side``).
+MAX_SIDE_TURNING = 8.0
+STEADY_TURNING = 2.5
 # Unit frame: the widest band over which the normal may turn from one face's to the other's (from
 # 10 % to 90 % of the way) at an edge. A fit rounds a sharp edge over 0.02 to 0.035 (90 % of the
 # walks across the sample CAD shapes' edges, featuretype's 0.055); a smooth bend of radius R
@@ -84,7 +89,20 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     _, walker = np.unique(np.floor(crossings[candidates] / WALK_SPACING).astype(np.int64), axis=0, return_index=True)
     start, direction = crossings[candidates[walker]], across[walker]
     walks = [_walk(start, sign * direction, derivatives_at) for sign in (1.0, -1.0)]
-    (point_a, normal_a, turns_a, read_a), (point_b, normal_b, turns_b, read_b) = [_face_beside(*w) for w in walks]
+    sides = [list(_face_beside(*walk)) for walk in walks]
+    # A side that curves steadily (a shaft's surface beside its flat) where the other is flat: its
+    # plane is its tangent plane where it meets the other's.
+    curved = [(sides[i][3] == 0) & (sides[1 - i][3] > 0) for i in (0, 1)]
+    for i in (0, 1):
+        rows = np.flatnonzero(curved[i])
+        flat_point, flat_normal = sides[1 - i][0][rows], sides[1 - i][1][rows]
+        point, normal, turns, found = _curved_side(
+            *(part[rows] for part in walks[i]), start[rows], flat_point, flat_normal
+        )
+        rows = rows[found]
+        sides[i][0][rows], sides[i][1][rows], sides[i][2][rows] = point[found], normal[found], turns[found]
+        sides[i][3][rows] = _WINDOWS[0][0]
+    (point_a, normal_a, turns_a, read_a), (point_b, normal_b, turns_b, read_b) = sides
     cosine = np.einsum("ij,ij->i", normal_a, normal_b)
     edge = (
         (read_a > 0)
@@ -183,6 +201,81 @@ def _face_beside(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, n
     reading = np.arange(1, normals.shape[1] + 1)
     held = np.where((reading > far[:, None])[:, :, None], normals[rows, far - 1][:, None], normals)
     return points[rows, near - 1], normals[rows, near - 1], held, np.where(flat, near, 0)
+
+
+def _curved_side(
+    points: np.ndarray, normals: np.ndarray, start: np.ndarray, flat_point: np.ndarray, flat_normal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where a walk's side curves steadily, as a cylinder does across its axis: the point and unit
+    normal (m, 3) of its tangent plane where it meets the other side's plane (``flat_point``,
+    ``flat_normal``, (m, 3)), the walk's normals with the side's steady turn taken out (m, k, 3),
+    and whether the side did curve so and meet that plane near the walk's ``start`` (m,).
+
+    The side turns steadily when its normal turns at each of the walk's last two steps by half
+    ``FLAT_TURNING`` to ``MAX_SIDE_TURNING``, by amounts within ``STEADY_TURNING`` of each
+    other, about one axis. The circle through the last reading, with the curvature of the last two
+    steps, continued back towards the edge, meets the flat side's plane there.
+    """
+    count = len(points)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,) + normals.shape[1:]), np.zeros(0, dtype=bool))
+    if count == 0:
+        return empty
+    step = 1.5 * SIDE_STEP / _WALK_STEPS
+    first, middle, last = normals[:, -3], normals[:, -2], normals[:, -1]
+    turns = [
+        np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v), -1, 1))) for u, v in ((first, middle), (middle, last))
+    ]
+    axis_first, axis_last = unit(np.cross(first, middle)), unit(np.cross(middle, last))
+    steady = (
+        (np.minimum(*turns) >= FLAT_TURNING / 2)
+        & (np.maximum(*turns) <= MAX_SIDE_TURNING)
+        & (np.abs(turns[0] - turns[1]) <= STEADY_TURNING)
+        & (np.einsum("ij,ij->i", axis_first, axis_last) > 0.9)
+    )
+    axis = unit(axis_first + axis_last)
+    curvature = np.radians(turns[0] + turns[1]) / (2 * step)  # rad per unit length
+    radius = 1.0 / np.maximum(curvature, 1e-12)
+    # The circle's centre lies behind the last reading along its normal when the side bulges out
+    # (its normal turns away from the walk's direction of travel), in front of it when hollow.
+    travel = unit(points[:, -1] - points[:, -2])
+    bulge = np.where(np.einsum("ij,ij->i", last - middle, travel) > 0, 1.0, -1.0)
+    centre = points[:, -1] - (bulge * radius)[:, None] * last
+    # The circle: centre + radius (cos θ u + sin θ v), u towards the last reading, v = axis × u.
+    u = unit(points[:, -1] - centre)
+    v = np.cross(axis, u)
+    a = radius * np.einsum("ij,ij->i", flat_normal, u)
+    b = radius * np.einsum("ij,ij->i", flat_normal, v)
+    c = np.einsum("ij,ij->i", flat_normal, centre - flat_point)
+    reach = np.hypot(a, b)
+    meets = reach > np.abs(c)
+    phase = np.arctan2(b, a)
+    spread = np.arccos(np.clip(-c / np.maximum(reach, 1e-12), -1, 1))
+    best = np.zeros((count, 3))
+    nearest = np.full(count, np.inf)
+    for angle in (phase + spread, phase - spread):
+        at = centre + radius[:, None] * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * v)
+        gap = np.linalg.norm(at - start, axis=1)
+        better = gap < nearest
+        best[better], nearest[better] = at[better], gap[better]
+    normal = unit(bulge[:, None] * (best - centre))
+    # The walk's normals turned back by the side's steady turn from the start, about its axis.
+    back = -curvature[:, None] * step * np.arange(1, normals.shape[1] + 1)
+    unbent = _rotate(normals, axis[:, None, :], back)
+    found = steady & meets & (nearest <= SIDE_STEP)
+    return best, normal, unbent, found
+
+
+def _angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The angle in degrees (m,) between the unit vectors ``u`` and ``v`` (m, 3), row by row."""
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v), -1.0, 1.0)))
+
+
+def _rotate(vectors: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """``vectors`` (..., 3) turned by ``angle`` (...) radians about the unit ``axis`` (..., 3)
+    (Rodrigues' formula; broadcast)."""
+    cos, sin = np.cos(angle)[..., None], np.sin(angle)[..., None]
+    along = np.sum(axis * vectors, axis=-1, keepdims=True)
+    return vectors * cos + np.cross(axis, vectors) * sin + axis * along * (1 - cos)
 
 
 def _wall_turns_on(read: np.ndarray, before: np.ndarray, face: np.ndarray, last: np.ndarray) -> np.ndarray:

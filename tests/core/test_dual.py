@@ -193,6 +193,62 @@ def test_the_two_sides_of_a_thin_wall_read_across_its_rounded_end_are_not_an_edg
     assert turning[planes.edge].max() <= features.MAX_EDGE_TURNING
 
 
+SHAFT_RADIUS, FLAT_HEIGHT = 0.15, 0.1  # the flat's edges: y = ±0.1118, z = 0.1; faces 48° apart
+
+
+def flatted_shaft(x: np.ndarray, rounding: float = 0.0) -> np.ndarray:
+    """A shaft along x of radius 0.15 with a flat at z = 0.1, the flat's edges rounded over about
+    ``rounding`` (a polynomial smooth maximum), as a fit rounds them."""
+    shaft, flat = np.hypot(x[:, 1], x[:, 2]) - SHAFT_RADIUS, x[:, 2] - FLAT_HEIGHT
+    if rounding > 0:
+        blend = np.maximum(rounding - np.abs(shaft - flat), 0) / rounding
+        solid = np.maximum(shaft, flat) + blend**2 * rounding / 4
+    else:
+        solid = np.maximum(shaft, flat)
+    return np.maximum(solid, np.abs(x[:, 0]) - 0.3)
+
+
+@pytest.mark.parametrize("rounding", [0.01, 0.02])
+def test_a_flat_on_a_shaft_is_sharpened_though_the_shaft_beside_it_curves(rounding):
+    # The walk across the flat's edge reads the flat on one side and the shaft, turning 7° every
+    # step, on the other: no flat face there, so the edge was left rounded (0.0028 and 0.0055 from
+    # the mesh) and had no curve. The shaft's tangent plane where it meets the flat is its plane.
+    f = functools.partial(flatted_shaft, rounding=rounding)
+    grid = sample_grid(f, 160, LOW, HIGH)
+    mesh = dual_contour(grid, f, lambda x: (f(x), gradient(f, x)))
+    edge_y = np.sqrt(SHAFT_RADIUS**2 - FLAT_HEIGHT**2)
+    along = np.linspace(-0.2, 0.2, 100)
+    for side in (1, -1):
+        line = np.stack([along, np.full(100, side * edge_y), np.full(100, FLAT_HEIGHT)], axis=1)
+        assert np.percentile(distance_to_mesh(line, mesh.vertices, mesh.faces), 99) < 0.001
+        on_edge = [
+            curve
+            for curve in edge_curves(mesh, 30.0, 0.02, 0.005)
+            if np.abs(curve.points - [0, side * edge_y, FLAT_HEIGHT])[:, 1:].max() < 0.005
+        ]
+        assert 0.5 < sum(curve.length for curve in on_edge) < 0.61  # 0.6 from end to end
+        assert all(abs(curve.dihedral - 132) < 4 and curve.convex for curve in on_edge)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+
+
+def test_a_curved_sides_plane_is_its_tangent_where_it_meets_the_flat_side():
+    # A walk over a circle of radius 0.1 (centre at the origin, in the plane z = 0) away from the
+    # line y = 0.06 that a flat side lies on: the side meets it at x = 0.08, where its normal is
+    # (0.8, 0.6, 0). With the steady turn taken out, the walk's normals are all the start's.
+    radius, step = 0.1, 1.5 * features.SIDE_STEP / features._WALK_STEPS
+    start_angle = np.arcsin(0.06 / radius) - 0.002 / radius  # 0.002 along the circle past the edge
+    angles = start_angle - step * np.arange(1, features._WALK_STEPS + 1) / radius
+    normals = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)[None]
+    points = radius * normals
+    start = radius * np.array([[np.cos(start_angle), np.sin(start_angle), 0.0]])
+    flat_point, flat_normal = np.array([[0, 0.06, 0]]), np.array([[0, 1.0, 0]])
+    point, normal, unbent, found = features._curved_side(points, normals, start, flat_point, flat_normal)
+    assert found.all()
+    assert point[0] == pytest.approx([0.08, 0.06, 0], abs=1e-9)
+    assert normal[0] == pytest.approx([0.8, 0.6, 0], abs=1e-9)
+    assert np.abs(unbent[0] - start / radius).max() < 1e-9
+
+
 def test_a_wall_read_nearer_its_edge_must_turn_on_as_a_plates_does():
     # Across a plate's edge: top (+z), then its wall (+x), then the bottom (-z) beyond the wall's
     # other edge; a stair's step turns back instead (tread, riser, next tread).
