@@ -42,8 +42,8 @@ MAX_EDGE_TURNING = 160.0
 MAX_SIDE_TURNING = 6.0
 STEADY_TURNING = 2.5
 # ... and only where the other side is flat from the second reading of its walk to the last (a
-# shaft's flat, 0.02 to 0.06 from the edge), the curved side's axis runs along the edge within
-# ALONG_EDGE (cosine) and the edge is convex. A scan's bumps pass the other tests: on the bunny, 377
+# shaft's flat, 0.02 to 0.06 from the edge), the curved side turns on about an axis along the edge
+# (within ALONG_EDGE, cosine) and the edge is convex. A scan's bumps pass the other tests: on the bunny, 377
 # walks found a curved side, 28 with these three tests but convexity, against 71 of the keyed
 # shaft's 172, and its false edges rose from 0.99 % to 1.18 % of its points, 0.98 % when convex.
 BROAD_READINGS = (2, 6)
@@ -272,7 +272,9 @@ def _curved_side(
     # The walk's normals turned back by the side's steady turn from the start, about its axis.
     back = -curvature[:, None] * step * np.arange(1, normals.shape[1] + 1)
     unbent = _rotate(normals, axis[:, None, :], back)
-    along = np.abs(np.einsum("ij,ij->i", axis, unit(np.cross(flat_normal, normal)))) >= ALONG_EDGE
+    # Along the edge, and turning on the way it turned at the edge (from the flat side's normal to
+    # its own): a fit's bump on a hole's wall beside its rim turned back, and passed for a shaft.
+    along = np.einsum("ij,ij->i", axis, unit(np.cross(flat_normal, normal))) >= ALONG_EDGE
     # Convex: the flat side lies behind the curved side's plane at the edge (a shaft's flat, a
     # keyway's top); the concave creases this found on the bunny were the scan's folds.
     convex = np.einsum("ij,ij->i", normal, flat_point - best) < 0
