@@ -111,9 +111,8 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     for i in (0, 1):
         rows = np.flatnonzero(curved[i])
         flat_point, flat_normal = sides[1 - i][0][rows], sides[1 - i][1][rows]
-        point, normal, turns, found = _curved_side(
-            *(part[rows] for part in walks[i]), start[rows], flat_point, flat_normal
-        )
+        walk_points, walk_normals = walks[i][0][rows], walks[i][1][rows]
+        point, normal, turns, found = _curved_side(walk_points, walk_normals, start[rows], flat_point, flat_normal)
         rows = rows[found]
         sides[i][0][rows], sides[i][1][rows], sides[i][2][rows] = point[found], normal[found], turns[found]
         sides[i][3][rows] = _WINDOWS[0][0]
