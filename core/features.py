@@ -8,10 +8,13 @@ the normal there; at one and a half steps it reads it again. Both sides flat (th
 each side within ``FLAT_TURNING``; for a face narrower than the walk, two readings nearer the
 edge, ``_WINDOWS``) and turned from one another by at least ``EDGE_TURNING``: the
 candidate lies in the band of an edge, and the planes of the two faces meet on that edge, provided
-the turn between them is as narrow as a fit's rounding (``BAND_WIDTH``). A curved face is never
-sharpened: up to a radius of about 0.2 (a hole's wall) it keeps turning over the walk, beyond that
-its two sides are turned by less than ``EDGE_TURNING``, and a bend between flat sides (the bump of a
-scan, a filleted edge of radius 0.04 or more) turns over a band wider than ``BAND_WIDTH``.
+the turn between them is as narrow as a fit's rounding (``BAND_WIDTH``), and not so wide that they
+are a thin wall's two sides (``MAX_EDGE_TURNING``). One side may instead curve steadily beside a
+broadly flat one at a convex edge (a shaft beside its flat, ``_curved_side``): its plane is then
+its tangent where it meets the flat side's. Any other curved face is never sharpened: up to a
+radius of about 0.2 (a hole's wall) it keeps turning over the walk, beyond that its two sides are
+turned by less than ``EDGE_TURNING``, and a bend between flat sides (the bump of a scan, a
+filleted edge of radius 0.04 or more) turns over a band wider than ``BAND_WIDTH``.
 """
 
 from __future__ import annotations
