@@ -45,14 +45,13 @@ MAX_EDGE_TURNING = 160.0
 MAX_SIDE_TURNING = 6.0
 STEADY_TURNING = 2.5
 # ... and only where the other side is flat from the second reading of its walk to the last (a
-# shaft's flat, 0.02 to 0.06 from the edge), the curved side turns on about an axis along the edge
-# (within ALONG_EDGE, cosine) and the edge is convex. A scan's bumps pass the other tests: on the bunny, 377
-# walks found a curved side, 28 with these three tests but convexity, against 71 of the keyed
-# shaft's 172, and its false edges rose from 0.99 % to 1.18 % of its points, 0.98 % when convex.
+# shaft's flat, 0.02 to 0.06 from the edge) within BROAD_TURNING, the curved side turns on about an
+# axis along the edge (within ALONG_EDGE, cosine) and the edge is convex. A scan's bumps pass the
+# other tests: the bunny's false edges rose from 0.99 % to 2.30 % of its points without these, 1.18 %
+# with all but convexity, 0.98 % with it. A fit's facets on the rounded box's fillets (radius 0.1)
+# passed with BROAD_TURNING at 5 (false edges 0.78 % -> 1.42 %; 1.22 % at 3, 1.09 % at 2, where the
+# keyed shaft's edge IoU fell back from 0.49 to 0.45-0.46).
 BROAD_READINGS = (2, 6)
-# Degrees the flat side's normal may turn over BROAD_READINGS: a fit's facets on the rounded box's
-# fillets (radius 0.1) passed at 5 (false edges 0.78 % -> 1.42 % of its points; 1.22 % at 3, 1.09 %
-# at 2, where the keyed shaft's edge IoU fell back from 0.49 to 0.45-0.46).
 BROAD_TURNING = 3.0
 ALONG_EDGE = 0.95
 # Unit frame: the widest band over which the normal may turn from one face's to the other's (from
@@ -235,14 +234,11 @@ def _curved_side(
     steps, continued back towards the edge, meets the flat side's plane there.
     """
     count = len(points)
-    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,) + normals.shape[1:]), np.zeros(0, dtype=bool))
     if count == 0:
-        return empty
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,) + normals.shape[1:]), np.zeros(0, dtype=bool)
     step = 1.5 * SIDE_STEP / _WALK_STEPS
     first, middle, last = normals[:, -3], normals[:, -2], normals[:, -1]
-    turns = [
-        np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v), -1, 1))) for u, v in ((first, middle), (middle, last))
-    ]
+    turns = [_angle(first, middle), _angle(middle, last)]
     axis_first, axis_last = unit(np.cross(first, middle)), unit(np.cross(middle, last))
     steady = (
         (np.minimum(*turns) >= FLAT_TURNING / 2)
