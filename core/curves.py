@@ -17,7 +17,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from core.features import unit
+from core.features import angles, unit
 from core.trees import kd_tree
 
 _SMOOTHING_PASSES = 3
@@ -70,7 +70,7 @@ def edge_curves(mesh: trimesh.Trimesh, angle: float, min_length: float, spacing:
         if lengths.sum() < min_length:
             continue
         left, right = _sides(face_normals, mesh_faces, chain, faces[steps])
-        turning = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", left, right), -1, 1)))
+        turning = angles(left, right)
         curves.append(
             _resample(
                 points,

@@ -107,7 +107,7 @@ def side_planes(crossings: np.ndarray, normals: np.ndarray, derivatives_at: Deri
     # broadly (``BROAD_READINGS``, ``BROAD_TURNING``): its plane is its tangent plane where it meets
     # the other's.
     broad = [
-        _angle(walk[1][:, BROAD_READINGS[0] - 1], walk[1][:, BROAD_READINGS[1] - 1]) <= BROAD_TURNING for walk in walks
+        angles(walk[1][:, BROAD_READINGS[0] - 1], walk[1][:, BROAD_READINGS[1] - 1]) <= BROAD_TURNING for walk in walks
     ]
     curved = [(sides[i][3] == 0) & (sides[1 - i][3] == _WINDOWS[0][0]) & broad[1 - i] for i in (0, 1)]
     for i in (0, 1):
@@ -238,7 +238,7 @@ def _curved_side(
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,) + normals.shape[1:]), np.zeros(0, dtype=bool)
     step = 1.5 * SIDE_STEP / _WALK_STEPS
     first, middle, last = normals[:, -3], normals[:, -2], normals[:, -1]
-    turns = [_angle(first, middle), _angle(middle, last)]
+    turns = [angles(first, middle), angles(middle, last)]
     axis_first, axis_last = unit(np.cross(first, middle)), unit(np.cross(middle, last))
     steady = (
         (np.minimum(*turns) >= FLAT_TURNING / 2)
@@ -285,11 +285,6 @@ def _curved_side(
     return best, normal, unbent, found
 
 
-def _angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The angle in degrees (m,) between the unit vectors ``u`` and ``v`` (m, 3), row by row."""
-    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v), -1.0, 1.0)))
-
-
 def _rotate(vectors: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """``vectors`` (..., 3) turned by ``angle`` (...) radians about the unit ``axis`` (..., 3)
     (Rodrigues' formula; broadcast)."""
@@ -327,6 +322,11 @@ def _first_reaching(share: np.ndarray, level: float) -> np.ndarray:
     after = np.maximum(after, 1)
     low, high = share[rows, after - 1], share[rows, after]
     return after - 1 + np.clip((level - low) / np.maximum(high - low, 1e-12), 0.0, 1.0)
+
+
+def angles(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The angle in degrees (m,) between the unit vectors ``u`` and ``v`` (m, 3), row by row."""
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u, v), -1.0, 1.0)))
 
 
 def unit(vectors: np.ndarray) -> np.ndarray:

@@ -196,16 +196,12 @@ def test_the_two_sides_of_a_thin_wall_read_across_its_rounded_end_are_not_an_edg
 SHAFT_RADIUS, FLAT_HEIGHT = 0.15, 0.1  # the flat's edges: y = ±0.1118, z = 0.1; faces 48° apart
 
 
-def flatted_shaft(x: np.ndarray, rounding: float = 0.0) -> np.ndarray:
+def flatted_shaft(x: np.ndarray, rounding: float) -> np.ndarray:
     """A shaft along x of radius 0.15 with a flat at z = 0.1, the flat's edges rounded over about
     ``rounding`` (a polynomial smooth maximum), as a fit rounds them."""
     shaft, flat = np.hypot(x[:, 1], x[:, 2]) - SHAFT_RADIUS, x[:, 2] - FLAT_HEIGHT
-    if rounding > 0:
-        blend = np.maximum(rounding - np.abs(shaft - flat), 0) / rounding
-        solid = np.maximum(shaft, flat) + blend**2 * rounding / 4
-    else:
-        solid = np.maximum(shaft, flat)
-    return np.maximum(solid, np.abs(x[:, 0]) - 0.3)
+    blend = np.maximum(rounding - np.abs(shaft - flat), 0) / rounding
+    return np.maximum(np.maximum(shaft, flat) + blend**2 * rounding / 4, np.abs(x[:, 0]) - 0.3)
 
 
 @pytest.mark.parametrize("rounding", [0.01, 0.02])
