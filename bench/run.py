@@ -6,6 +6,7 @@ and worker throughput. Prints markdown tables and writes them to bench/results/l
     .venv/bin/python bench/run.py --only quality --configs default --clouds cube
     .venv/bin/python bench/run.py --only quality --configs default --clouds cube,flange --seeds 0,1 --jobs 2
     .venv/bin/python bench/run.py --only steps                     # one training step, side by side
+    .venv/bin/python bench/run.py --only step-parts                # a fit's step in its parts, at four batch sizes
     .venv/bin/python bench/run.py --only throughput                # 1 worker x 2 threads vs 2 x 1
 
 Quality: every (configuration, cloud) pair is fitted in a fresh process (so its peak memory is
@@ -132,7 +133,7 @@ SPREAD_COLUMNS = ["chamfer_exact", "hausdorff_exact", "normal_mean_oriented", "e
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--only", choices=["quality", "steps", "throughput"], action="append")
+    parser.add_argument("--only", choices=["quality", "steps", "step-parts", "throughput"], action="append")
     parser.add_argument(
         "--configs", default=",".join(default_configs()), help="comma-separated, from: " + ", ".join(all_configs())
     )
@@ -172,6 +173,8 @@ def main() -> int:
         sections.append(quality(configs, clouds, args.data, overrides, seeds, args.jobs, args.fits))
     if "steps" in parts:
         sections.append(steps(overrides))
+    if "step-parts" in parts:  # after "steps": its process set-up tunes the allocator, which stays
+        sections.append(step_parts(overrides))
     if "throughput" in parts:
         sections.append(throughput(args.data, overrides))
     report = "\n\n".join(sections) + "\n"
@@ -553,6 +556,64 @@ def steps(overrides: dict, repeats: int = 30) -> str:
         f"For comparison, nested autograd (the tests' reference) takes {autograd_ms:.0f} ms for the same "
         f"Laplacian on the {len(batch)} input points alone (float32, mean of 3).",
     ]
+    return "\n".join(lines)
+
+
+def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32, 128, 512, 1024)) -> str:
+    """A fit's training step timed in its parts (the draw, ``step_loss``, the backward pass, fused
+    Adam), as ``core.fit`` takes it in a process set up as a fit's, at several batch sizes: what a
+    step costs whatever its size (dispatch and autograd's bookkeeping) and what grows with it. The
+    normal term (the fit's first half) is left out; it adds one cheap loss."""
+    import torch
+
+    from core.fit import matmul_dtype_for, step_loss
+    from core.network import ImplicitNetwork
+    from core.sampling import FreeSpace, draw_batch, local_scales
+    from evaluation.shapes import sample_shape
+
+    configure_core()
+    params = params_for("default", overrides)
+    points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
+    cloud = torch.as_tensor(points, dtype=torch.float32)
+    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
+    free_space = FreeSpace(points)
+    dtype = matmul_dtype_for(params.precision)
+    generator = torch.Generator().manual_seed(0)
+    residuals = torch.ones(len(cloud))
+    model = ImplicitNetwork(params.width, params.depth, params.beta)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=True)
+    warm_ups = 10
+    lines = [
+        "## A fit's step in its parts",
+        "",
+        f"The cube's points, width {params.width}, depth {params.depth}, "
+        f"{'bfloat16' if dtype is not None else 'float32'} products, {torch.get_num_threads()} threads; "
+        f"median ms of {repeats} steps after {warm_ups}.",
+        "",
+        "| input points | eikonal samples | draw | forward | backward | Adam | step |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for size in sizes:
+        times: dict[str, list[float]] = {"draw": [], "forward": [], "backward": [], "Adam": []}
+        for _ in range(warm_ups + repeats):
+            started = time.perf_counter()
+            batch, samples, rows = draw_batch(cloud, scales, size, generator, residuals, params.residual_share)
+            drawn = time.perf_counter()
+            loss, _, _, batch_residuals = step_loss(model, batch, samples, params, free_space, dtype)
+            residuals[rows] = batch_residuals
+            forward = time.perf_counter()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            backward = time.perf_counter()
+            optimizer.step()
+            ended = time.perf_counter()
+            for part, (start, end) in zip(
+                times, ((started, drawn), (drawn, forward), (forward, backward), (backward, ended)), strict=True
+            ):
+                times[part].append((end - start) * 1000)
+        medians = [statistics.median(values[warm_ups:]) for values in times.values()]
+        cells = " | ".join(f"{ms:.2f}" for ms in medians)
+        lines.append(f"| {size:,} | {len(samples):,} | {cells} | {sum(medians):.1f} |")
     return "\n".join(lines)
 
 
