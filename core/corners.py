@@ -32,7 +32,7 @@ import trimesh
 from scipy.sparse import csr_matrix
 
 from core.curves import Curve, curve_ends, linked
-from core.features import face_normals, unit
+from core.features import angles, face_normals, unit
 from core.intersections import uncrossed
 from core.trees import kd_tree
 
@@ -474,8 +474,7 @@ def _bends(points: np.ndarray) -> np.ndarray:
         return np.stack([np.interp(distance, reach_along, reach_points[:, axis]) for axis in range(3)], axis=1)
 
     before, after = points - at(along - BEND_REACH), at(along + BEND_REACH) - points
-    cosine = np.einsum("ij,ij->i", unit(before), unit(after))
-    turning = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    turning = angles(unit(before), unit(after))
     inside = loop | ((along >= BEND_REACH) & (along <= total - BEND_REACH))
     bending = np.flatnonzero(inside & (turning > BEND_ANGLE))
     if len(bending) == 0:

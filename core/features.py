@@ -234,8 +234,6 @@ def _curved_side(
     steps, continued back towards the edge, meets the flat side's plane there.
     """
     count = len(points)
-    if count == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,) + normals.shape[1:]), np.zeros(0, dtype=bool)
     step = 1.5 * SIDE_STEP / _WALK_STEPS
     first, middle, last = normals[:, -3], normals[:, -2], normals[:, -1]
     turns = [angles(first, middle), angles(middle, last)]
