@@ -488,15 +488,11 @@ def steps(overrides: dict, repeats: int = 30) -> str:
 
     from core.fit import matmul_dtype_for, step_loss
     from core.network import ImplicitNetwork
-    from core.sampling import FreeSpace, draw_batch, local_scales
-    from evaluation.shapes import sample_shape
+    from core.sampling import draw_batch
 
     configure_core(tune_malloc=False)  # as before: the step's own allocations, glibc's defaults
     params = params_for("default", overrides)
-    points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
-    cloud = torch.as_tensor(points, dtype=torch.float32)
-    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
-    free_space = FreeSpace(points)
+    cloud, scales, free_space = _cube_step_inputs()
     batch, samples, _ = draw_batch(cloud, scales, params.batch_points, torch.Generator().manual_seed(0))
     variants = {
         "eikonal only (λ2 = 0)": params.model_copy(update={"lambda2": 0.0}),
@@ -568,15 +564,11 @@ def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32,
 
     from core.fit import matmul_dtype_for, step_loss
     from core.network import ImplicitNetwork
-    from core.sampling import FreeSpace, draw_batch, local_scales
-    from evaluation.shapes import sample_shape
+    from core.sampling import draw_batch
 
     configure_core()
     params = params_for("default", overrides)
-    points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
-    cloud = torch.as_tensor(points, dtype=torch.float32)
-    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
-    free_space = FreeSpace(points)
+    cloud, scales, free_space = _cube_step_inputs()
     dtype = matmul_dtype_for(params.precision)
     generator = torch.Generator().manual_seed(0)
     residuals = torch.ones(len(cloud))
@@ -613,6 +605,19 @@ def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32,
         cells = " | ".join(f"{statistics.median(values[warm_ups:]):.2f}" for values in times.values())
         lines.append(f"| {size:,} | {len(samples):,} | {cells} |")
     return "\n".join(lines)
+
+
+def _cube_step_inputs():
+    """What a step of the cube's fit reads besides the network: its 16,384 points (seed 0, noise
+    0.005) as a tensor (n, 3), their local scales (n,) and their free-space map."""
+    import torch
+
+    from core.sampling import FreeSpace, local_scales
+    from evaluation.shapes import sample_shape
+
+    points = sample_shape("cube", n_points=16_384, noise=0.005, seed=0).points
+    cloud = torch.as_tensor(points, dtype=torch.float32)
+    return cloud, torch.as_tensor(local_scales(points), dtype=torch.float32), FreeSpace(points)
 
 
 def step_flops(rows: int, laplacian_rows: int, width: int, depth: int) -> float:
