@@ -11,7 +11,10 @@ again to the input points around it that lie near that plane, on the face's side
 refitted planes meet. A refit is not used where it would move the point far, turn a plane far, fit
 one face much more loosely than the other, or where a face is curved (a disc's rim, a hole's wall:
 the planes of the points on either side along the edge differ), since a plane fitted to a curved
-face meets the other off the edge.
+face meets the other off the edge. Where the curved face is a wall upright on a flat one (a drilled
+hole, a boss), a cylinder about the flat face's normal is fitted to the wall's points instead, the
+rim goes onto the circle where it meets the plane, and the mesh's vertices around the rim go onto
+the two faces (``_onto_rims``, ``_onto_rim_faces``).
 
 The same planes give the normals of the input points beside an edge (``normals_on_faces``): ∇f
 there leans towards the other face over the band the fit rounds, and the refitted plane is the
@@ -21,6 +24,7 @@ face the point lies on.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -49,6 +53,21 @@ PASSES = 3
 MAX_SPREAD = 1.5  # the wider spread of a face's points off its plane, over the narrower (both share the noise)
 MAX_TILT = 10.0  # degrees a refitted plane may turn from the face it was read from
 MAX_MOVE = 0.02  # unit frame: the farthest a crease vertex or curve sample moves
+# A rim (``_onto_rims``): degrees a wall's point's fit normal may lean from upright on the flat
+# face, and the largest radius of a wall refitted as a cylinder (unit frame): at most REACH, so
+# that the points around a rim point hold a third of its circle or more. Fitted over less, the
+# circle misplaced the rim by the noise: on idler_riser's wall of radius about 0.4, neighbouring
+# rim points read radii 0.385 and 0.474, 0.005 off the true rim, and its exact d_C went 0.0014 ->
+# 0.0016 (docs/benchmarks.md).
+UPRIGHT = 15.0
+MAX_RADIUS = REACH
+# Degrees: and between its fit normal and the circle's (or, to start the circle, the wall's normal
+# at the rim point); unit frame: the points that start the circle lie this near the wall's tangent
+# plane there (a wider arc than BAND's: Kåsa's fit to a short arc's noisy points goes far astray).
+FACING = 30.0
+RIM_START = 0.05
+START_FACING = 45.0
+WALL_REACH = 0.03  # unit frame: mesh vertices this near a refitted rim point go onto its faces (``_onto_rim_faces``)
 _CHUNK = 1024  # rows refitted at a time
 # Input points read at most, a seeded draw of a larger cloud: at 1 M points the balls of REACH held
 # some 60 times the 16,384-point cloud's points, and the step took 15 s and 940 MB more instead of
@@ -98,7 +117,7 @@ def onto_refitted(
     at = np.concatenate([before[vertex], *(curve.points for curve in curves)])
     if len(at) == 0 or len(points) < MIN_POINTS:
         return mesh, curves
-    target, holds = _refitted(
+    target, holds, walls = _refitted(
         at,
         np.concatenate([side_a, *(curve.left for curve in curves)]),
         np.concatenate([side_b, *(curve.right for curve in curves)]),
@@ -112,7 +131,7 @@ def onto_refitted(
     if not holds[on_mesh].any():
         return mesh, curves
     faces = np.asarray(mesh.faces)
-    vertices = before.copy()
+    vertices = _onto_rim_faces(before, np.asarray(mesh.vertex_normals), walls)
     vertices[vertex[holds[on_mesh]]] = target[on_mesh][holds[on_mesh]]
     vertices = _unturned(vertices, before, faces)
     return trimesh.Trimesh(uncrossed(vertices, before, faces), faces, process=False), curves
@@ -136,34 +155,65 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
         return normals
     rows = subsample_rows(len(points), CLOUD_POINTS, seed=0)
     at = np.concatenate([curve.points for curve in curves])
-    normal_a, offset_a, normal_b, offset_b, spread, holds = _planes(
-        at,
-        np.concatenate([curve.left for curve in curves]),
-        np.concatenate([curve.right for curve in curves]),
-        np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves]),
-        points[rows],
-        normals[rows],
-    )
+    side_a = np.concatenate([curve.left for curve in curves])
+    side_b = np.concatenate([curve.right for curve in curves])
+    convex = np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves])
+    tree = kd_tree(points[rows])
+    planes = _planes(at, side_a, side_b, convex, tree, points[rows], normals[rows])
+    rim_rows, rims = _rims_beside(planes, side_a, side_b, convex, at, tree, points[rows], normals[rows])
+    holds = planes.holds.copy()
+    holds[rim_rows] = True
     if not holds.any():
         return normals
-    noise = float(np.median(spread[holds]))
+    noise = float(np.median(np.concatenate([planes.spread[planes.holds].ravel(), rims.spread])))
     held = np.flatnonzero(holds)
     to_held, nearest = kd_tree(at[held]).query(points, distance_upper_bound=NORMAL_REACH, workers=workers)
     found = np.flatnonzero(nearest < len(held))
     to_any, _ = kd_tree(at).query(points[found], workers=workers)
     found = found[to_held[found] - to_any < HELD_GAP]
     sample = held[nearest[found]]
-    offsets = points[found] - at[sample]
-    to_a = np.abs(_dot(offsets, normal_a[sample]) - offset_a[sample])
-    to_b = np.abs(_dot(offsets, normal_b[sample]) - offset_b[sample])
-    face = np.where((to_a < to_b)[:, None], normal_a[sample], normal_b[sample])
-    clear = (np.abs(to_a - to_b) > CLEAR * noise) & (np.minimum(to_a, to_b) < CLEAR * noise)
+    face, to_face, to_other = np.zeros((len(found), 3)), np.zeros(len(found)), np.zeros(len(found))
+    on_planes = planes.holds[sample]
+    face[on_planes], to_face[on_planes], to_other[on_planes] = _face_of_planes(
+        points[found[on_planes]] - at[sample[on_planes]], planes, sample[on_planes]
+    )
+    rim_of = np.full(len(at), -1)
+    rim_of[rim_rows] = np.arange(len(rim_rows))
+    on_rims = ~on_planes
+    face[on_rims], to_face[on_rims], to_other[on_rims] = _face_of_rims(
+        points[found[on_rims]], rims, rim_of[sample[on_rims]]
+    )
+    clear = (to_other - to_face > CLEAR * noise) & (to_face < CLEAR * noise)
     clear &= _dot(face, normals[found]) > np.cos(np.radians(MAX_TURN))
-    edge = unit(np.cross(normal_a[sample], normal_b[sample]))
-    clear &= np.abs(_dot(normals[found], edge)) < np.sin(np.radians(ALONG_EDGE))
+    edge = unit(np.cross(planes.normal_a[sample], planes.normal_b[sample]))
+    clear &= ~on_planes | (np.abs(_dot(normals[found], edge)) < np.sin(np.radians(ALONG_EDGE)))
     result = normals.copy()
     result[found[clear]] = face[clear]
     return result
+
+
+def _face_of_planes(
+    offsets: np.ndarray, planes: _Planes, sample: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For points at ``offsets`` (n, 3) from their edge samples (rows ``sample`` (n,) of
+    ``planes``): the unit normal (n, 3) of the nearer plane, their distance to it (n,) and to the
+    other (n,)."""
+    to_a = np.abs(_dot(offsets, planes.normal_a[sample]) - planes.offset_a[sample])
+    to_b = np.abs(_dot(offsets, planes.normal_b[sample]) - planes.offset_b[sample])
+    face = np.where((to_a < to_b)[:, None], planes.normal_a[sample], planes.normal_b[sample])
+    return face, np.minimum(to_a, to_b), np.maximum(to_a, to_b)
+
+
+def _face_of_rims(points: np.ndarray, rims: _Rims, rim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For ``points`` (n, 3) beside their rims (rows ``rim`` (n,) of ``rims``): the unit normal (n,
+    3) of the nearer of the rim's faces (the flat face's plane on its side of the circle, the
+    wall's cylinder past the plane), their distance to it (n,) and to the other (n,)."""
+    depth, beyond, outward = _about_rim(points, rims, rim)
+    to_flat = np.hypot(depth, np.minimum(beyond, 0.0))
+    to_wall = np.hypot(beyond, np.minimum(depth, 0.0))
+    wall = rims.facing[rim][:, None] * outward
+    face = np.where((to_flat < to_wall)[:, None], rims.flat[rim], wall)
+    return face, np.minimum(to_flat, to_wall), np.maximum(to_flat, to_wall)
 
 
 def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -200,34 +250,118 @@ def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.n
 
 def _refitted(
     at: np.ndarray, side_a: np.ndarray, side_b: np.ndarray, convex: np.ndarray, points: np.ndarray, normals: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, _Rims]:
     """For points ``at`` (c, 3) on an edge between faces of unit normals ``side_a`` and ``side_b``
     (c, 3) through them, convex or not (c,): the nearest point (c, 3) of the line where the planes
-    refitted to the input ``points`` meet (``at`` itself where the refit does not hold), and
-    whether it holds (c,)."""
-    normal_a, offset_a, normal_b, offset_b, _, holds = _planes(at, side_a, side_b, convex, points, normals)
-    step = _onto_line(normal_a, offset_a, normal_b, offset_b)
+    refitted to the input ``points`` meet, or, beside a flat face whose other face is curved, of
+    the circle where that face's plane meets a wall upright on it (``_onto_rims``); ``at`` itself
+    where neither refit holds. And whether one holds (c,), and the walls' cylinders of the rim
+    refits that hold (``_Rims``)."""
+    tree = kd_tree(points)
+    planes = _planes(at, side_a, side_b, convex, tree, points, normals)
+    step = _onto_line(planes.normal_a, planes.offset_a, planes.normal_b, planes.offset_b)
+    holds = planes.holds.copy()
+    rows, rims = _rims_beside(planes, side_a, side_b, convex, at, tree, points, normals)
+    step[rows] = rims.step
+    holds[rows] = True
     holds &= np.linalg.norm(step, axis=1) <= MAX_MOVE
-    return np.where(holds[:, None], at + step, at), holds
+    return np.where(holds[:, None], at + step, at), holds, rims
+
+
+def _rims_beside(
+    planes: _Planes,
+    side_a: np.ndarray,
+    side_b: np.ndarray,
+    convex: np.ndarray,
+    at: np.ndarray,
+    tree: cKDTree,
+    points: np.ndarray,
+    normals: np.ndarray,
+) -> tuple[np.ndarray, _Rims]:
+    """The rows of ``at`` (c, 3) whose ``planes`` do not hold because one face is flat and the other
+    curved, and whose rim refit (``_onto_rims``) holds and moves the point at most ``MAX_MOVE``,
+    with those refits."""
+    sides = (side_a, side_b)
+    flats = ((planes.normal_a, planes.offset_a), (planes.normal_b, planes.offset_b))
+    found, refits = [], []
+    for flat, wall in ((0, 1), (1, 0)):
+        rows = np.flatnonzero(~planes.holds & planes.flat[:, flat] & ~planes.flat[:, wall])
+        normal, offset = flats[flat]
+        rims = _onto_rims(
+            at[rows],
+            normal[rows],
+            offset[rows],
+            planes.spread[rows, flat],
+            sides[wall][rows],
+            convex[rows],
+            tree,
+            points,
+            normals,
+        )
+        held = rims.holds & (np.linalg.norm(rims.step, axis=1) <= MAX_MOVE)
+        found.append(rows[held])
+        refits.append(_Rims(*(field[held] for field in rims)))
+    return np.concatenate(found), _Rims(*(np.concatenate(part) for part in zip(*refits, strict=True)))
+
+
+class _Planes(NamedTuple):
+    """Two faces' planes refitted around c points on their edge: unit normals (c, 3) and offsets
+    (c,) as n·(x - at) = offset, a's then b's; the spread of each face's points off its plane (c,
+    2); whether each face is flat along the edge and not turned far from its face (c, 2); and
+    whether the refit holds (c,): both flat, spread alike."""
+
+    normal_a: np.ndarray
+    offset_a: np.ndarray
+    normal_b: np.ndarray
+    offset_b: np.ndarray
+    spread: np.ndarray
+    flat: np.ndarray
+    holds: np.ndarray
+
+
+class _Rims(NamedTuple):
+    """Rim refits of c points (``_onto_rims``): the step (c, 3) onto the rim and whether it holds
+    (c,); the crease point it was read at and the rim point (c, 3) each; the flat face's refitted
+    outward normal (c, 3); the wall's cylinder: a point (c, 3) of its axis on the flat face's
+    plane, the axis's unit direction (c, 3) into the wall (depth grows along it), its radius (c,),
+    and which way the wall faces (c,): 1 away from the axis (a boss), -1 towards it (a hole); and
+    the spread of the flat face's points off its plane (c,)."""
+
+    step: np.ndarray
+    holds: np.ndarray
+    at: np.ndarray
+    point: np.ndarray
+    flat: np.ndarray
+    centre: np.ndarray
+    axis: np.ndarray
+    radius: np.ndarray
+    facing: np.ndarray
+    spread: np.ndarray
 
 
 def _planes(
-    at: np.ndarray, side_a: np.ndarray, side_b: np.ndarray, convex: np.ndarray, points: np.ndarray, normals: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The two faces' planes refitted to the input ``points`` around each of ``at`` (as in
-    ``_refitted``): their unit normals (c, 3) and offsets (c,) as n·(x - at) = offset, a's then
-    b's, the spread of each face's points off its plane (c, 2), and whether the refit holds (c,).
+    at: np.ndarray,
+    side_a: np.ndarray,
+    side_b: np.ndarray,
+    convex: np.ndarray,
+    tree: cKDTree,
+    points: np.ndarray,
+    normals: np.ndarray,
+) -> _Planes:
+    """The two faces' planes refitted to the input ``points`` (in the k-d ``tree``) around each of
+    ``at`` (as in ``_refitted``).
     In chunks of ``_CHUNK`` rows: each row holds up to ``MAX_POINTS`` points' coordinates and
     moments (about 50 kB), so memory stays bounded for any mesh."""
-    tree = kd_tree(points)
     parts = [
         _planes_chunk(at[rows], side_a[rows], side_b[rows], convex[rows], tree, points, normals)
         for rows in (slice(start, start + _CHUNK) for start in range(0, len(at), _CHUNK))
     ]
     if not parts:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), np.zeros(0, dtype=bool)
-    normal_a, offset_a, normal_b, offset_b, spread, holds = (np.concatenate(part) for part in zip(*parts, strict=True))
-    return normal_a, offset_a, normal_b, offset_b, spread, holds
+        empty = np.zeros((0, 3))
+        return _Planes(
+            empty, np.zeros(0), empty, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2), bool), np.zeros(0, bool)
+        )
+    return _Planes(*(np.concatenate(part) for part in zip(*parts, strict=True)))
 
 
 def _planes_chunk(
@@ -238,7 +372,7 @@ def _planes_chunk(
     tree: cKDTree,
     points: np.ndarray,
     normals: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> _Planes:
     """``_planes`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
     near, valid = _neighbours(at, tree)
     offsets = points[near] - at[:, None]  # (c, k, 3), relative to the edge point
@@ -255,22 +389,201 @@ def _planes_chunk(
     half = _along(offsets, edge) > 0
     normal_a, normal_b = side_a, side_b
     offset_a, offset_b = np.zeros(len(at)), np.zeros(len(at))
-    holds = np.ones(len(at), dtype=bool)
     for _ in range(PASSES):
         on_a = facing[0] & (np.abs(_along(offsets, normal_a) - offset_a[:, None]) < BAND)
         on_b = facing[1] & (np.abs(_along(offsets, normal_b) - offset_b[:, None]) < BAND)
         on_a, on_b = on_a & ~on_b, on_b & ~on_a  # a point near both planes is neither face's
         normal_a, offset_a, spread_a = _plane(moments, on_a, side_a)
         normal_b, offset_b, spread_b = _plane(moments, on_b, side_b)
-    for chosen, face in ((on_a, side_a), (on_b, side_b)):
-        holds &= ((chosen & half).sum(axis=1) >= MIN_POINTS // 2) & ((chosen & ~half).sum(axis=1) >= MIN_POINTS // 2)
+    flat = []
+    tilt = np.cos(np.radians(MAX_TILT))
+    for chosen, face, normal in ((on_a, side_a, normal_a), (on_b, side_b, normal_b)):
+        both_halves = ((chosen & half).sum(axis=1) >= MIN_POINTS // 2) & (
+            (chosen & ~half).sum(axis=1) >= MIN_POINTS // 2
+        )
         one_side, _, _ = _plane(moments, chosen & half, face)
         other_side, _, _ = _plane(moments, chosen & ~half, face)
-        holds &= _dot(one_side, other_side) > np.cos(np.radians(STRAIGHT))
-    tilt = np.cos(np.radians(MAX_TILT))
-    holds &= (_dot(normal_a, side_a) > tilt) & (_dot(normal_b, side_b) > tilt)
-    holds &= np.maximum(spread_a, spread_b) <= MAX_SPREAD * np.minimum(spread_a, spread_b)
-    return normal_a, offset_a, normal_b, offset_b, np.stack([spread_a, spread_b], axis=1), holds
+        flat.append(
+            both_halves & (_dot(one_side, other_side) > np.cos(np.radians(STRAIGHT))) & (_dot(normal, face) > tilt)
+        )
+    holds = flat[0] & flat[1] & (np.maximum(spread_a, spread_b) <= MAX_SPREAD * np.minimum(spread_a, spread_b))
+    return _Planes(
+        normal_a, offset_a, normal_b, offset_b, np.stack([spread_a, spread_b], axis=1), np.stack(flat, axis=1), holds
+    )
+
+
+def _onto_rims(
+    at: np.ndarray,
+    flat: np.ndarray,
+    flat_offset: np.ndarray,
+    flat_spread: np.ndarray,
+    wall: np.ndarray,
+    convex: np.ndarray,
+    tree: cKDTree,
+    points: np.ndarray,
+    normals: np.ndarray,
+) -> _Rims:
+    """For points ``at`` (c, 3) on the rim where a flat face, of refitted plane ``flat`` (unit
+    normals, (c, 3)) · (x - at) = ``flat_offset`` (c,) with its points' ``flat_spread`` (c,), meets
+    a curved wall (its side's unit normal ``wall``, (c, 3)), convex or not (c,): the step (c, 3)
+    onto the circle where that plane meets a cylinder about its normal refitted to the wall's
+    points (a drilled hole, a boss, a disc's edge), whether it holds, and the cylinders (``_Rims``).
+
+    A plane fitted to a curved wall meets the flat face off the rim, so such a refit is refused
+    (``STRAIGHT``) and the rim stayed where the fit's rounding put it: on l_bracket's and the
+    flange's holes the wall bulges into the hole near the rim, the crease vertex followed its
+    flank, and they were those meshes' farthest vertices (0.012-0.017 inside the holes). The wall
+    is the points upright on the plane (fit normal within ``UPRIGHT`` degrees of it) beyond the
+    rim's rounding on the wall's side, within ``BAND`` of the circle and facing as the wall does;
+    the circle is their least-squares fit (``_circle``) in the plane's coordinates, started from
+    the wall's tangent plane at the rim point."""
+    parts = [
+        _rim_chunk(
+            at[rows], flat[rows], flat_offset[rows], flat_spread[rows], wall[rows], convex[rows], tree, points, normals
+        )
+        for rows in (slice(start, start + _CHUNK) for start in range(0, len(at), _CHUNK))
+    ]
+    if not parts:
+        empty = np.zeros((0, 3))
+        none = np.zeros(0)
+        return _Rims(empty, np.zeros(0, dtype=bool), empty, empty, empty, empty, empty, none, none, none)
+    return _Rims(*(np.concatenate(part) for part in zip(*parts, strict=True)))
+
+
+def _rim_chunk(
+    at: np.ndarray,
+    flat: np.ndarray,
+    flat_offset: np.ndarray,
+    flat_spread: np.ndarray,
+    wall: np.ndarray,
+    convex: np.ndarray,
+    tree: cKDTree,
+    points: np.ndarray,
+    normals: np.ndarray,
+) -> _Rims:
+    """``_onto_rims`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
+    near, valid = _neighbours(at, tree)
+    offsets = points[near] - at[:, None]  # (c, k, 3), relative to the rim point
+    # The plane's coordinates: x along the wall's normal, y along the rim, each row's own.
+    across = unit(wall - _dot(wall, flat)[:, None] * flat)
+    along = np.cross(flat, across)
+    x, y = _along(offsets, across), _along(offsets, along)
+    # The points' normals in the plane: the fit tilts a wall's normals out of it near the rim.
+    normal_x, normal_y = _along(normals[near], across), _along(normals[near], along)
+    length = np.maximum(np.hypot(normal_x, normal_y), 1e-12)
+    normal_x, normal_y = normal_x / length, normal_y / length
+    # Beyond the rounding on the wall's side of the plane: under it at a convex rim, over it at a concave one.
+    depth = (_along(offsets, flat) - flat_offset[:, None]) * np.where(convex, -1.0, 1.0)[:, None]
+    upright = valid & (depth > OFF_EDGE) & (np.abs(_along(normals[near], flat)) < np.sin(np.radians(UPRIGHT)))
+    on_wall = upright & (np.abs(x) < RIM_START) & (normal_x > np.cos(np.radians(START_FACING)))
+    centre_x, centre_y, radius = _circle(x, y, on_wall)
+    for _ in range(PASSES):
+        facing, distance, radial = _about(centre_x, centre_y, x, y, normal_x, normal_y)
+        on_wall = upright & (np.abs(distance - radius[:, None]) < BAND) & (radial > np.cos(np.radians(FACING)))
+        centre_x, centre_y, radius = _circle(x, y, on_wall)
+    facing, distance, radial = _about(centre_x, centre_y, x, y, normal_x, normal_y)
+    count = np.maximum(on_wall.sum(axis=1), 1)
+    spread = np.sqrt(np.where(on_wall, (distance - radius[:, None]) ** 2, 0.0).sum(axis=1) / count)
+    half = y > 0
+    holds = ((on_wall & half).sum(axis=1) >= MIN_POINTS // 2) & ((on_wall & ~half).sum(axis=1) >= MIN_POINTS // 2)
+    holds &= (radius < MAX_RADIUS) & (np.maximum(spread, flat_spread) <= MAX_SPREAD * np.minimum(spread, flat_spread))
+    # A cylinder's normals lie along its radius: two flat walls at a corner read as one bend are off it.
+    holds &= np.where(on_wall, radial, 0.0).sum(axis=1) / count > np.cos(np.radians(SAME_FACE))
+    # The wall's normal at the rim turns no more than MAX_TILT from its side's (in the plane).
+    from_centre = np.maximum(np.hypot(centre_x, centre_y), 1e-12)
+    holds &= -facing * centre_x / from_centre > np.cos(np.radians(MAX_TILT))
+    # The rim point on the plane (x = y = 0 there), then along the radius onto the circle.
+    radius = np.where(holds, radius, 0.0)
+    rim_x = centre_x - radius * centre_x / from_centre
+    rim_y = centre_y - radius * centre_y / from_centre
+    step = np.where(holds[:, None], flat_offset[:, None] * flat + rim_x[:, None] * across + rim_y[:, None] * along, 0.0)
+    axis = flat * np.where(convex, -1.0, 1.0)[:, None]
+    centre = at + flat_offset[:, None] * flat + centre_x[:, None] * across + centre_y[:, None] * along
+    return _Rims(step, holds, at, at + step, flat, centre, axis, radius, facing, flat_spread)
+
+
+def _onto_rim_faces(vertices: np.ndarray, normals: np.ndarray, rims: _Rims) -> np.ndarray:
+    """``vertices`` (n, 3) within ``WALL_REACH`` of a refitted rim point (``rims``) moved onto its
+    two faces, the flat face's plane and the wall's cylinder. A vertex's place across the rim is
+    how far it lies beyond the circle along the plane less its depth past the plane (+ on the
+    plane, - down the wall); that of the crease point the rim was read at goes to 0 (the rim), and
+    the shift fades to nothing WALL_REACH along from it, so the rows of vertices across a rounded
+    or bulging rim keep their order on the faces instead of meeting on the rim, where the faces
+    between them would turn over. A vertex that would move more than ``BAND``, or whose mesh
+    normal (``normals``, (n, 3)) leans against the flat face's (more than ``UPRIGHT`` beyond
+    upright: the other side of a thin part), stays. Each takes the faces of its nearest rim point.
+
+    The fit's surface is off where its rim is: on l_bracket's seed-0 fit the wall bulged 0.007-0.010
+    into a hole over its top 0.03 and the flat face ran past the rim into it, and those vertices
+    were that mesh's farthest."""
+    vertices = vertices.copy()
+    if len(rims.point) == 0:
+        return vertices
+    _, nearest = kd_tree(rims.point).query(vertices, distance_upper_bound=WALL_REACH)
+    found = np.flatnonzero(nearest < len(rims.point))
+    rim = nearest[found]
+    centre, axis, radius = rims.centre[rim], rims.axis[rim], rims.radius[rim]
+    depth, beyond, outward = _about_rim(vertices[found], rims, rim)
+    along = beyond - depth
+    start_depth, start_beyond, _ = _about_rim(rims.at[rim], rims, rim)
+    shift = start_beyond - start_depth
+    from_start = along - shift
+    along = from_start + shift * np.minimum(np.abs(from_start) / WALL_REACH, 1.0)
+    flat_side = _flat_side(rims, rim)
+    on_flat = centre + (radius + flat_side * np.maximum(along, 0.0))[:, None] * outward
+    target = on_flat + np.maximum(-along, 0.0)[:, None] * axis
+    moves = np.linalg.norm(target - vertices[found], axis=1) < BAND
+    moves &= _dot(normals[found], rims.flat[rim]) > -np.sin(np.radians(UPRIGHT))
+    vertices[found[moves]] = target[moves]
+    return vertices
+
+
+def _about_rim(points: np.ndarray, rims: _Rims, rim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where ``points`` (n, 3) lie about the faces of their rims (``rim``, (n,), rows of ``rims``):
+    their depth past the flat face's plane into the wall (n,), how far they lie beyond the wall's
+    circle on the plane's side of it (n,), and the unit direction (n, 3) from the axis to them."""
+    offsets = points - rims.centre[rim]
+    depth = _dot(offsets, rims.axis[rim])
+    radial = offsets - depth[:, None] * rims.axis[rim]
+    length = np.maximum(np.linalg.norm(radial, axis=1), 1e-12)
+    return depth, _flat_side(rims, rim) * (length - rims.radius[rim]), radial / length[:, None]
+
+
+def _flat_side(rims: _Rims, rim: np.ndarray) -> np.ndarray:
+    """Which side of the wall's circle the flat face lies on (n,) for rows ``rim`` of ``rims``: 1
+    outside, -1 inside. Beyond the circle from the wall's face at a convex rim (a hole's, a boss's
+    top), before it at a concave one (a boss's foot, a counterbore's floor)."""
+    return rims.facing[rim] * np.where(_dot(rims.axis[rim], rims.flat[rim]) < 0, -1.0, 1.0)
+
+
+def _about(
+    centre_x: np.ndarray, centre_y: np.ndarray, x: np.ndarray, y: np.ndarray, normal_x: np.ndarray, normal_y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row, of a wall about the centre (c,) x and y, through the rim point at the origin: which
+    way it faces there (c,), 1 away from the centre (a boss), -1 towards it (a hole); the points'
+    (x, y) (c, k) distances from the centre (c, k); and the cosine (c, k) between their unit
+    normals (``normal_x``, ``normal_y``) and the wall's there, along the radius."""
+    facing = np.where(centre_x < 0, 1.0, -1.0)
+    to_x, to_y = x - centre_x[:, None], y - centre_y[:, None]
+    distance = np.maximum(np.hypot(to_x, to_y), 1e-12)
+    return facing, distance, facing[:, None] * (normal_x * to_x + normal_y * to_y) / distance
+
+
+def _circle(x: np.ndarray, y: np.ndarray, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row, the circle through the ``chosen`` (c, k) points (x, y) (c, k) in the least-squares
+    sense of x² + y² + d x + e y + f = 0 (Kåsa's fit: linear, exact on a circle): centres (c,) x
+    and y, and radii (c,); an infinite radius about the origin where the points lie on a line or
+    are too few."""
+    weight = chosen.astype(np.float64)
+    rows = np.stack([x, y, np.ones_like(x)], axis=2) * weight[:, :, None]  # (c, k, 3)
+    system = np.einsum("cki,ckj->cij", rows, np.stack([x, y, np.ones_like(x)], axis=2))
+    rhs = -np.einsum("cki,ck->ci", rows, x**2 + y**2)
+    solvable = np.abs(np.linalg.det(system)) > 1e-18 * np.maximum(np.abs(system).max(axis=(1, 2)), 1e-300) ** 3
+    safe = np.where(solvable[:, None, None], system, np.eye(3))
+    d, e, f = np.linalg.solve(safe, rhs[:, :, None])[:, :, 0].T
+    centre_x, centre_y = -d / 2, -e / 2
+    radius = np.sqrt(np.maximum(centre_x**2 + centre_y**2 - f, 0.0))
+    return np.where(solvable, centre_x, 0.0), np.where(solvable, centre_y, 0.0), np.where(solvable, radius, np.inf)
 
 
 def _neighbours(at: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
