@@ -279,29 +279,36 @@ def _rims_beside(
     normals: np.ndarray,
 ) -> tuple[np.ndarray, _Rims]:
     """The rows of ``at`` (c, 3) whose ``planes`` do not hold because one face is flat and the other
-    curved, and whose rim refit (``_onto_rims``) holds and moves the point at most ``MAX_MOVE``,
-    with those refits."""
+    curved, and whose rim refit (``_onto_rims``, ``_CHUNK`` rows at a time) holds and moves the
+    point at most ``MAX_MOVE``, with those refits."""
     sides = (side_a, side_b)
     flats = ((planes.normal_a, planes.offset_a), (planes.normal_b, planes.offset_b))
-    found, refits = [], []
+    found, refits = [np.zeros(0, dtype=np.int64)], [_no_rims()]
     for flat, wall in ((0, 1), (1, 0)):
         rows = np.flatnonzero(~planes.holds & planes.flat[:, flat] & ~planes.flat[:, wall])
         normal, offset = flats[flat]
-        rims = _onto_rims(
-            at[rows],
-            normal[rows],
-            offset[rows],
-            planes.spread[rows, flat],
-            sides[wall][rows],
-            convex[rows],
-            tree,
-            points,
-            normals,
-        )
-        held = rims.holds & (np.linalg.norm(rims.step, axis=1) <= MAX_MOVE)
-        found.append(rows[held])
-        refits.append(_Rims(*(field[held] for field in rims)))
+        for part in (rows[start : start + _CHUNK] for start in range(0, len(rows), _CHUNK)):
+            rims = _onto_rims(
+                at[part],
+                normal[part],
+                offset[part],
+                planes.spread[part, flat],
+                sides[wall][part],
+                convex[part],
+                tree,
+                points,
+                normals,
+            )
+            held = rims.holds & (np.linalg.norm(rims.step, axis=1) <= MAX_MOVE)
+            found.append(part[held])
+            refits.append(_Rims(*(field[held] for field in rims)))
     return np.concatenate(found), _Rims(*(np.concatenate(part) for part in zip(*refits, strict=True)))
+
+
+def _no_rims() -> _Rims:
+    """No rim refits."""
+    empty, none = np.zeros((0, 3)), np.zeros(0)
+    return _Rims(empty, np.zeros(0, dtype=bool), empty, empty, empty, empty, empty, none, none, none)
 
 
 class _Planes(NamedTuple):
@@ -430,38 +437,13 @@ def _onto_rims(
     points (a drilled hole, a boss, a disc's edge), whether it holds, and the cylinders (``_Rims``).
 
     A plane fitted to a curved wall meets the flat face off the rim, so such a refit is refused
-    (``STRAIGHT``) and the rim stayed where the fit's rounding put it: on l_bracket's and the
-    flange's holes the wall bulges into the hole near the rim, the crease vertex followed its
-    flank, and they were those meshes' farthest vertices (0.012-0.017 inside the holes). The wall
+    (``STRAIGHT``) and the rim stayed where the fit's rounding put it: on l_bracket's holes the
+    wall bulges into the hole near the rim, the crease vertex followed its flank, and those rim
+    vertices were that mesh's farthest (0.012 inside the holes at seed 0). The wall
     is the points upright on the plane (fit normal within ``UPRIGHT`` degrees of it) beyond the
     rim's rounding on the wall's side, within ``BAND`` of the circle and facing as the wall does;
     the circle is their least-squares fit (``_circle``) in the plane's coordinates, started from
-    the wall's tangent plane at the rim point."""
-    parts = [
-        _rim_chunk(
-            at[rows], flat[rows], flat_offset[rows], flat_spread[rows], wall[rows], convex[rows], tree, points, normals
-        )
-        for rows in (slice(start, start + _CHUNK) for start in range(0, len(at), _CHUNK))
-    ]
-    if not parts:
-        empty = np.zeros((0, 3))
-        none = np.zeros(0)
-        return _Rims(empty, np.zeros(0, dtype=bool), empty, empty, empty, empty, empty, none, none, none)
-    return _Rims(*(np.concatenate(part) for part in zip(*parts, strict=True)))
-
-
-def _rim_chunk(
-    at: np.ndarray,
-    flat: np.ndarray,
-    flat_offset: np.ndarray,
-    flat_spread: np.ndarray,
-    wall: np.ndarray,
-    convex: np.ndarray,
-    tree: cKDTree,
-    points: np.ndarray,
-    normals: np.ndarray,
-) -> _Rims:
-    """``_onto_rims`` of one chunk of rows, with a k-d ``tree`` of ``points``."""
+    the wall's tangent plane at the rim point. The input ``points`` are in the k-d ``tree``."""
     near, valid = _neighbours(at, tree)
     offsets = points[near] - at[:, None]  # (c, k, 3), relative to the rim point
     # The plane's coordinates: x along the wall's normal, y along the rim, each row's own.
