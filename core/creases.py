@@ -57,16 +57,17 @@ MAX_MOVE = 0.02  # unit frame: the farthest a crease vertex or curve sample move
 # face, and the largest radius of a wall refitted as a cylinder (unit frame): at most REACH, so
 # that the points around a rim point hold a third of its circle or more. Fitted over less, the
 # circle misplaced the rim by the noise: on idler_riser's wall of radius about 0.4, neighbouring
-# rim points read radii 0.385 and 0.474, 0.005 off the true rim, and its exact d_C went 0.0014 ->
+# rim points read radii 0.385 and 0.474, 0.005-0.010 off the true rim, and its exact d_C went 0.0014 ->
 # 0.0016 (docs/benchmarks.md).
 UPRIGHT = 15.0
 MAX_RADIUS = REACH
-# Degrees: and between its fit normal and the circle's (or, to start the circle, the wall's normal
-# at the rim point); unit frame: the points that start the circle lie this near the wall's tangent
-# plane there (a wider arc than BAND's: Kåsa's fit to a short arc's noisy points goes far astray).
+# Degrees: a wall point's fit normal lies within FACING of the circle's normal there; the points
+# that start the circle, within START_FACING of the wall's normal at the rim point and within
+# RIM_START (unit frame) of its tangent plane there: a wider arc than BAND's, since Kåsa's fit to a
+# short arc's noisy points goes far astray (a radius of 0.004 for a hole of 0.088).
 FACING = 30.0
-RIM_START = 0.05
 START_FACING = 45.0
+RIM_START = 0.05
 WALL_REACH = 0.03  # unit frame: mesh vertices this near a refitted rim point go onto its faces (``_onto_rim_faces``)
 _CHUNK = 1024  # rows refitted at a time
 # Input points read at most, a seeded draw of a larger cloud: at 1 M points the balls of REACH held
