@@ -310,13 +310,15 @@ def test_a_circle_is_fitted_exactly_and_a_line_is_no_circle():
 
 # A plate 0.1 thick with a hole of radius 0.1 along z through it. The fitted surface the mesh is
 # contoured from has the hole's wall bulging into the hole near its top rim, by up to BULGE, as a
-# fit's rounding leaves it (l_bracket's and the flange's holes).
+# fit's rounding leaves it (l_bracket's holes).
 PLATE, HOLE, BULGE = np.array([0.35, 0.35, 0.05]), 0.1, 0.012
 
 
 def _bulged_plate(x: np.ndarray) -> np.ndarray:
+    """A distance-like function (max of the box's and the hole's) of the plate whose hole narrows
+    by BULGE at its top rim, fading over 0.04 down the wall."""
     radius = HOLE - BULGE * np.exp(-(((PLATE[2] - x[:, 2]) / 0.04) ** 2))
-    return np.maximum(np.abs(x) @ np.eye(3) - PLATE, radius[:, None] - np.hypot(x[:, 0], x[:, 1])[:, None]).max(axis=1)
+    return np.maximum(np.abs(x) - PLATE, radius[:, None] - np.hypot(x[:, 0], x[:, 1])[:, None]).max(axis=1)
 
 
 def plate_samples(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
