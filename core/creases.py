@@ -161,7 +161,7 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     convex = np.concatenate([np.full(len(curve.points), curve.convex) for curve in curves])
     tree = kd_tree(points[rows])
     planes = _planes(at, side_a, side_b, convex, tree, points[rows], normals[rows])
-    rim_rows, rims = _rims_beside(planes, side_a, side_b, convex, at, tree, points[rows], normals[rows])
+    rim_rows, rims = _rims_beside(at, side_a, side_b, convex, planes, tree, points[rows], normals[rows])
     holds = planes.holds.copy()
     holds[rim_rows] = True
     if not holds.any():
@@ -262,7 +262,7 @@ def _refitted(
     planes = _planes(at, side_a, side_b, convex, tree, points, normals)
     step = _onto_line(planes.normal_a, planes.offset_a, planes.normal_b, planes.offset_b)
     holds = planes.holds.copy()
-    rows, rims = _rims_beside(planes, side_a, side_b, convex, at, tree, points, normals)
+    rows, rims = _rims_beside(at, side_a, side_b, convex, planes, tree, points, normals)
     step[rows] = rims.step
     holds[rows] = True
     holds &= np.linalg.norm(step, axis=1) <= MAX_MOVE
@@ -270,11 +270,11 @@ def _refitted(
 
 
 def _rims_beside(
-    planes: _Planes,
+    at: np.ndarray,
     side_a: np.ndarray,
     side_b: np.ndarray,
     convex: np.ndarray,
-    at: np.ndarray,
+    planes: _Planes,
     tree: cKDTree,
     points: np.ndarray,
     normals: np.ndarray,
@@ -461,10 +461,10 @@ def _onto_rims(
     on_wall = upright & (np.abs(x) < RIM_START) & (normal_x > np.cos(np.radians(START_FACING)))
     centre_x, centre_y, radius = _circle(x, y, on_wall)
     for _ in range(PASSES):
-        facing, distance, radial = _about(centre_x, centre_y, x, y, normal_x, normal_y)
+        facing, distance, radial = _about_circle(centre_x, centre_y, x, y, normal_x, normal_y)
         on_wall = upright & (np.abs(distance - radius[:, None]) < BAND) & (radial > np.cos(np.radians(FACING)))
         centre_x, centre_y, radius = _circle(x, y, on_wall)
-    facing, distance, radial = _about(centre_x, centre_y, x, y, normal_x, normal_y)
+    facing, distance, radial = _about_circle(centre_x, centre_y, x, y, normal_x, normal_y)
     count = np.maximum(on_wall.sum(axis=1), 1)
     spread = np.sqrt(np.where(on_wall, (distance - radius[:, None]) ** 2, 0.0).sum(axis=1) / count)
     half = y > 0
@@ -539,7 +539,7 @@ def _flat_side(rims: _Rims, rim: np.ndarray) -> np.ndarray:
     return rims.facing[rim] * np.where(_dot(rims.axis[rim], rims.flat[rim]) < 0, -1.0, 1.0)
 
 
-def _about(
+def _about_circle(
     centre_x: np.ndarray, centre_y: np.ndarray, x: np.ndarray, y: np.ndarray, normal_x: np.ndarray, normal_y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per row, of a wall about the centre (c,) x and y, through the rim point at the origin: which
