@@ -30,16 +30,17 @@ def normal_loss(grad_points: Tensor, normals: Tensor, outward: Tensor, edges: Te
     round (a pocket's floor with a thin void under it, facing down); the edge points are left out,
     as from the Laplacian term, since their planes average two faces.
     """
-    keep = ~edges if edges.numel() else torch.ones(len(normals), dtype=torch.bool)
-    if not keep.any():
-        return grad_points.sum() * 0.0
-    grad, normals, outward = grad_points[keep], normals[keep], outward[keep]
-    cosine = (grad * normals).sum(dim=1) / grad.norm(dim=1).clamp_min(1e-12)
-    return (1 - torch.where(outward, cosine, cosine.abs())).mean()
+    cosine = (grad_points * normals).sum(dim=1) / grad_points.norm(dim=1).clamp_min(1e-12)
+    keep = 1.0 - edges.to(cosine.dtype) if edges.numel() else torch.ones_like(cosine)
+    return _mean_over(1 - torch.where(outward, cosine, cosine.abs()), keep)
 
 
 def laplacian_loss(
-    lap_points: Tensor, tau: float, edge_sampling: bool, penalty: str = "quadratic", scale: float = 1.0
+    lap_points: Tensor,
+    tau: float | Tensor,
+    edge_sampling: bool,
+    penalty: str = "quadratic",
+    scale: float | Tensor = 1.0,
 ) -> tuple[Tensor, Tensor]:
     """Mean penalty of Δf over the non-edge points, and the edge mask (|Δf| >= tau) left out.
 
@@ -51,16 +52,20 @@ def laplacian_loss(
     just below tau, at the border of every edge, and wears edges away from there.
     """
     edges = lap_points.detach().abs() >= tau if edge_sampling else torch.zeros_like(lap_points, dtype=torch.bool)
-    kept = lap_points[~edges]
-    if not kept.numel():
-        return lap_points.sum() * 0.0, edges
-    square = kept.square()
+    square = lap_points.square()
     if penalty == "robust":
         square = square / (1 + square / scale**2)
-    return square.mean(), edges
+    return _mean_over(square, 1.0 - edges.to(square.dtype)), edges
 
 
-def free_space_loss(f_samples: Tensor, distance: Tensor, sign: Tensor, margin: float) -> Tensor:
+def _mean_over(values: Tensor, keep: Tensor) -> Tensor:
+    """The mean of ``values`` (n,) over the rows where ``keep`` (n,) is 1, 0 where it is 0
+    everywhere. Weights instead of a boolean index keep every shape fixed, so that a compiled
+    step (``core.fit``) is one graph."""
+    return (values * keep).sum() / keep.sum().clamp_min(1.0)
+
+
+def free_space_loss(f_samples: Tensor, distance: Tensor, sign: Tensor, margin: float | Tensor) -> Tensor:
     """Mean hinge that keeps the surface out of empty space.
 
     A sample at ``distance`` from the nearest input point is at least ``distance - margin`` from
