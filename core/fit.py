@@ -13,7 +13,13 @@ from torch import Tensor
 
 from core.errors import CancelCheck, check_cancel
 from core.losses import eikonal_loss, free_space_loss, laplacian_loss, normal_loss, vanish_loss
-from core.network import ImplicitNetwork, eager_kernels, finish_warming_kernels, warm_kernels_in_background
+from core.network import (
+    ImplicitNetwork,
+    compile_whole,
+    eager_kernels,
+    finish_warming_kernels,
+    warm_kernels_in_background,
+)
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
 from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_normals, subsample_rows
@@ -42,11 +48,13 @@ HALF_BATCH_MIN_POINTS = 8192
 
 # The first steps of every fit run the eager kernels while the compiled ones are made in the
 # background (``warm_kernels_in_background``): 5-9 s to load from the disk cache, 30 s or more
-# after an install, before which the first step waited. The two threads share the interpreter's
-# lock, so each runs at half its pace or less: with 100 eager steps a warm-cache fit reached step
-# 200 5-7 s later than without the thread, with 20 about 1.4 s later (docs/benchmarks.md); the
-# fit waits at this step for what is left of the compile. Every fit switches at the same step,
-# whether or not its process had compiled before, so that a seed gives the same fit.
+# after an install, before which the first step waited (a fit's whole steps, three shapes: 8-10 s
+# from the disk cache on a Xeon with AMX, 0.7 s where the process compiled them before). The two
+# threads share the interpreter's lock, so each runs at half its pace or less: with 100 eager
+# steps a warm-cache fit reached step 200 5-7 s later than without the thread, with 20 about 1.4 s
+# later (docs/benchmarks.md); the fit waits at this step for what is left of the compile. Every
+# fit switches at the same step, whether or not its process had compiled before, so that a seed
+# gives the same fit.
 EAGER_STEPS = 20
 
 # The points whose median of f sets the fitted level (``centre_level``), drawn from the cloud: the
@@ -75,11 +83,13 @@ def fit(
     (``draw_batch``; a ``residual_share`` of the points in proportion to their |f| when last
     drawn), computes ``step_loss`` and takes one Adam step, with the learning rate decaying
     geometrically. The first ``EAGER_STEPS`` steps run the eager kernels while the compiled ones are
-    made in a background thread. With ``encoding="auto"`` the network starts without Fourier
-    features and, in a fit of at least ``CHECKED_ITERATIONS`` steps whose residuals at its
-    ``CHECK_SHARE`` have a heavier tail than noise (``residual_tail`` above ``TAIL_LIMIT``) that
-    reaches past ``MISS_FLOOR`` and the points' spacing, starts again with ``features`` of them: the same fit as
-    ``encoding="always"``, after those extra steps.
+    made in a background thread; where the batch is ``batch_points`` (a cloud of at least that
+    many), the later steps are compiled whole, once for each shape they take (``step_loss``).
+    With ``encoding="auto"`` the network starts without Fourier features and, in a fit of at least
+    ``CHECKED_ITERATIONS`` steps whose residuals at its ``CHECK_SHARE`` have a heavier tail than
+    noise (``residual_tail`` above ``TAIL_LIMIT``) that reaches past ``MISS_FLOOR`` and the points'
+    spacing, starts again with ``features`` of them: the same fit as ``encoding="always"``, after
+    those extra steps.
     Last, f is shifted so that its median at the points is 0 (``centre_level``).
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
     neighbour queries and the free-space map take seconds); when it returns True, ``Cancelled``
@@ -210,15 +220,31 @@ def _train(
     # first weighted draws go to the points not yet seen.
     residuals = torch.ones(len(cloud))
 
+    # The steps are compiled whole where their shapes are the defaults' (a cloud of at least a
+    # batch): a smaller cloud's batch is its own size, each a compile of its own.
+    whole = batch_size == params.batch_points
+
+    def shape(iteration: int) -> tuple[int, bool]:
+        """The step's batch size and whether it carries the normal term."""
+        size = batch_size if iteration > HALF_BATCH_SHARE * params.iterations else early_size
+        return size, setup.cloud_normals is not None and iteration <= NORMAL_TERM_SHARE * params.iterations
+
+    def inputs(
+        size: int, with_normals: bool, draws: torch.Generator, weights: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor] | None]:
+        """A step's batch, eikonal samples, the batch's rows and their normals (or None)."""
+        batch, samples, rows = draw_batch(cloud, setup.scales, size, draws, weights, params.residual_share)
+        batch_normals = None
+        if with_normals:
+            assert setup.cloud_normals is not None
+            batch_normals = (setup.cloud_normals[0][rows], setup.cloud_normals[1][rows])
+        return batch, samples, rows, batch_normals
+
     def take_step(iteration: int) -> None:
         check_cancel(should_cancel)
-        size = batch_size if iteration > HALF_BATCH_SHARE * params.iterations else early_size
-        batch, samples, rows = draw_batch(cloud, setup.scales, size, generator, residuals, params.residual_share)
-        batch_normals = None
-        if setup.cloud_normals is not None and iteration <= NORMAL_TERM_SHARE * params.iterations:
-            batch_normals = (setup.cloud_normals[0][rows], setup.cloud_normals[1][rows])
+        batch, samples, rows, batch_normals = inputs(*shape(iteration), generator, residuals)
         loss, terms, edges, batch_residuals = step_loss(
-            model, batch, samples, params, setup.free_space, matmul_dtype, batch_normals
+            model, batch, samples, params, setup.free_space, matmul_dtype, batch_normals, whole
         )
         residuals[rows] = batch_residuals
 
@@ -246,7 +272,15 @@ def _train(
         tail, reach = residual_tail(model, check.points)
         return tail > TAIL_LIMIT and reach > check.floor
 
-    warm_kernels_in_background(model, matmul_dtype, laplacian=params.lambda2 > 0)
+    def warm_steps(network: ImplicitNetwork) -> None:
+        """A step of each shape the fit's compiled steps take, on ``network`` (a copy)."""
+        draws = torch.Generator().manual_seed(params.seed)
+        for step_shape in sorted({shape(i) for i in range(EAGER_STEPS + 1, params.iterations + 1)}):
+            batch, samples, _, batch_normals = inputs(*step_shape, draws, None)  # the same shapes
+            loss = step_loss(network, batch, samples, params, setup.free_space, matmul_dtype, batch_normals, True)[0]
+            loss.backward()
+
+    warm_kernels_in_background(model, matmul_dtype, params.lambda2 > 0, warm_steps if whole else None)
     try:
         with eager_kernels():
             for iteration in range(1, min(EAGER_STEPS, params.iterations) + 1):
@@ -312,6 +346,7 @@ def step_loss(
     free_space: FreeSpace | None = None,
     matmul_dtype: torch.dtype | None = None,
     normals: tuple[Tensor, Tensor] | None = None,
+    whole: bool = False,
 ) -> tuple[Tensor, dict[str, Tensor], Tensor, Tensor]:
     """The loss of one step, its terms, the batch's edge mask (DES) and |f| at the batch's points
     (detached: the residuals that weight the next draws).
@@ -322,27 +357,62 @@ def step_loss(
     needs the near samples: a membrane across a small hole (the L-bracket's) is met by a uniform
     sample a few times per thousand steps, by the near samples every step. ``normals`` are the
     cloud's normals at the batch's points and whether each is oriented, for the normal term (None:
-    no such term).
+    no such term). ``whole``: the step after the free-space map's lookup is compiled whole
+    (``compile_whole``) for these shapes; the same loss to rounding.
     """
-    n = len(batch)
-    laplacian_rows = n if params.lambda2 > 0 else 0
-    f, grad, lap = model.derivatives(torch.cat([batch, samples]), laplacian_rows, matmul_dtype)
-    terms = {"vanish": vanish_loss(f[:n]), "eikonal": eikonal_loss(grad)}
-    loss = terms["vanish"] + params.lambda1 * terms["eikonal"]
-    edges = torch.zeros(0, dtype=torch.bool)
-    if lap is not None:
-        terms["laplacian"], edges = laplacian_loss(
-            lap, params.tau, params.edge_sampling, params.laplacian_penalty, params.penalty_scale
-        )
-        loss = loss + params.lambda2 * terms["laplacian"]
-    if normals is not None:
-        terms["normal"] = normal_loss(grad[:n], *normals, edges)
-        loss = loss + params.lambda4 * terms["normal"]
+    space = None
     if free_space is not None:
         distance, sign = free_space.distance_and_sign(samples)
-        terms["free_space"] = free_space_loss(f[n:], distance, sign, free_space.margin)
-        loss = loss + params.lambda3 * terms["free_space"]
+        space = (distance, sign, torch.tensor(free_space.margin))
+    # The weights as a tensor, so that a compiled step is one graph for every value of them.
+    weights = torch.tensor(
+        [params.lambda1, params.lambda2, params.tau, params.penalty_scale, params.lambda4, params.lambda3]
+    )
+    which = _Terms(params.lambda2 > 0, params.edge_sampling, params.laplacian_penalty)
+    terms_of = _whole_step_terms if whole else _step_terms
+    return terms_of(model, batch, samples, which, weights, space, matmul_dtype, normals)
+
+
+@dataclass(frozen=True)
+class _Terms:
+    """Which terms a step has and how (what a compiled step's graph depends on, besides shapes)."""
+
+    laplacian: bool
+    edge_sampling: bool
+    penalty: str
+
+
+def _step_terms(
+    model: ImplicitNetwork,
+    batch: Tensor,
+    samples: Tensor,
+    which: _Terms,
+    weights: Tensor,
+    space: tuple[Tensor, Tensor, Tensor] | None,
+    matmul_dtype: torch.dtype | None,
+    normals: tuple[Tensor, Tensor] | None,
+) -> tuple[Tensor, dict[str, Tensor], Tensor, Tensor]:
+    """``step_loss`` given the free-space map's distance, sign (at the samples) and margin, and
+    ``weights`` (6,): λ1, λ2, τ, the penalty's scale, λ4, λ3."""
+    lambda1, lambda2, tau, scale, lambda4, lambda3 = weights.unbind()
+    n = len(batch)
+    f, grad, lap = model.derivatives(torch.cat([batch, samples]), n if which.laplacian else 0, matmul_dtype)
+    terms = {"vanish": vanish_loss(f[:n]), "eikonal": eikonal_loss(grad)}
+    loss = terms["vanish"] + lambda1 * terms["eikonal"]
+    edges = torch.zeros(0, dtype=torch.bool)
+    if lap is not None:
+        terms["laplacian"], edges = laplacian_loss(lap, tau, which.edge_sampling, which.penalty, scale)
+        loss = loss + lambda2 * terms["laplacian"]
+    if normals is not None:
+        terms["normal"] = normal_loss(grad[:n], *normals, edges)
+        loss = loss + lambda4 * terms["normal"]
+    if space is not None:
+        terms["free_space"] = free_space_loss(f[n:], *space)
+        loss = loss + lambda3 * terms["free_space"]
     return loss, terms, edges, f[:n].detach().abs()
+
+
+_whole_step_terms = compile_whole(_step_terms)
 
 
 def matmul_dtype_for(precision: str) -> torch.dtype | None:

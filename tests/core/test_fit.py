@@ -7,6 +7,7 @@ bounds measured on it with a margin. The fit with the shipped defaults is in tes
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -414,6 +415,46 @@ def test_the_first_steps_run_eagerly_while_the_kernels_compile_in_the_background
     assert calls_by_step[3] > len(warmed)  # step 4 ran the compiled kernels
     assert {kernel for thread, kernel in calls if thread == main} == every_kernel  # the steps, then the level
     assert network._kernels.warm_up is None
+
+
+@pytest.mark.parametrize("with_normals", [True, False])
+def test_a_step_compiled_whole_has_the_eager_steps_loss_terms_and_gradients(monkeypatch, with_normals):
+    monkeypatch.setattr(network, "_kernels", network._Kernels())
+    points = sample_shape("cube", n_points=2000, seed=0).points
+    params = FitParams(precision="float32", tau=5.0, **SMALL)  # tau low enough that some points are edges
+    cloud = torch.as_tensor(points, dtype=torch.float32)
+    free_space = FreeSpace(points)
+    generator = torch.Generator().manual_seed(0)
+    scales = torch.as_tensor(local_scales(points), dtype=torch.float32)
+    batch, samples, _ = sampling.draw_batch(cloud, scales, 256, generator)
+    normals = None
+    if with_normals:
+        oriented = torch.nn.functional.normalize(torch.randn(256, 3, generator=generator), dim=1)
+        normals = (oriented, torch.rand(256, generator=generator) < 0.5)
+    model = ImplicitNetwork(64, 2, 100.0, generator=torch.Generator().manual_seed(1))
+    results = []
+    for whole in (False, True):  # the eager kernels, then the step compiled whole
+        model.zero_grad(set_to_none=True)
+        with network.eager_kernels() if not whole else contextlib.nullcontext():
+            loss, terms, edges, residuals = fit_module.step_loss(
+                model, batch, samples, params, free_space, None, normals, whole
+            )
+            loss.backward()
+        results.append((loss, terms, edges, residuals, [p.grad.clone() for p in model.parameters()]))
+    (loss, terms, edges, residuals, grads), (loss_c, terms_c, edges_c, residuals_c, grads_c) = results
+    assert network._kernels._functions.keys() == {"_step_terms"}  # compiled whole, kernels traced into it
+    assert 0 < edges.sum() < len(edges) and torch.equal(edges, edges_c)
+    assert (
+        terms.keys()
+        == terms_c.keys()
+        == {"vanish", "eikonal", "laplacian", "free_space"} | ({"normal"} if with_normals else set())
+    )
+    for name in terms:
+        assert terms_c[name].item() == pytest.approx(terms[name].item(), rel=1e-5, abs=1e-7)
+    assert loss_c.item() == pytest.approx(loss.item(), rel=1e-5)
+    assert torch.allclose(residuals_c, residuals, rtol=1e-5, atol=1e-7)
+    for grad, grad_c in zip(grads, grads_c, strict=True):
+        assert torch.allclose(grad_c, grad, rtol=1e-4, atol=1e-6 * grad.abs().max().item())
 
 
 def test_the_fits_fused_adam_takes_the_steps_of_the_plain_loop(monkeypatch):
