@@ -36,7 +36,8 @@ RUN mkdir -p "$TORCHINDUCTOR_CACHE_DIR"
 # Compile the kernels now, into the image (and into a new inductor-cache volume, which Docker fills
 # from it): a new container's first fit then loads them in about 5 s instead of compiling them for
 # 25-45 s (when it runs on the kind of CPU the image was built on: the cache is per instruction
-# set). The worker's own warm-up: two-step fits of a tiny cloud, one of each network a job may train.
+# set). The worker's own warm-up: two-step fits of a tiny cloud and the first steps of default fits,
+# one of each network a job may train (worker/process.py: warm_kernels).
 RUN python -c "from core.runtime import configure; configure(compile=True); \
 from worker.process import warm_kernels; warm_kernels()"
 

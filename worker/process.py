@@ -156,20 +156,35 @@ def prepare_torch(settings: Settings) -> None:
 
 
 def warm_kernels() -> None:
-    """Compile every kernel a job calls, on two-step fits of a tiny cloud (dynamic shapes): one of
+    """Compile every kernel a job calls: two-step fits of a tiny cloud (the kernels compiled for
+    dynamic shapes, and the extraction's), then the first compiled steps of default fits of a
+    cloud of ``HALF_BATCH_MIN_POINTS`` (the steps compiled whole for a default job's shapes); one of
     each network a job may train, without Fourier features and with them (a fit that starts
     again). The worker runs it at its start, the Dockerfile at the image's build."""
-    from core.errors import EdgereconError
+    from core.errors import Cancelled, EdgereconError
+    from core.fit import EAGER_STEPS, HALF_BATCH_MIN_POINTS, fit
     from core.params import FitParams
+    from core.progress import Progress
     from core.reconstruct import reconstruct
     from evaluation.shapes import sample_shape
 
     points = sample_shape("sphere", n_points=400).points
+    dense = sample_shape("sphere", n_points=HALF_BATCH_MIN_POINTS).points
+    steps: list[int] = []
+
+    def record(update: Progress) -> None:
+        steps.append(update.iteration)
+
     for encoding in ("never", "always"):
         try:
             reconstruct(points, FitParams(iterations=2, resolution=32, encoding=encoding))
         except EdgereconError as error:  # two steps may leave no surface: the kernels are compiled anyway
             log.info("warm-up fit: %s", error)
+        steps.clear()
+        try:  # the first compiled step waits for every shape's compile, then the fit stops
+            fit(dense, FitParams(encoding=encoding), record, lambda: len(steps) > EAGER_STEPS)
+        except Cancelled:
+            pass
 
 
 if __name__ == "__main__":
