@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import itertools
 import json
 import os
 import platform
@@ -558,8 +559,9 @@ def steps(overrides: dict, repeats: int = 30) -> str:
 def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32, 128, 512, 1024)) -> str:
     """A fit's training step timed in its parts (the draw, ``step_loss``, the backward pass, fused
     Adam), as ``core.fit`` takes it in a process set up as a fit's, at several batch sizes: what a
-    step costs whatever its size (dispatch and autograd's bookkeeping) and what grows with it. The
-    normal term (the fit's first half) is left out; it adds one cheap loss."""
+    step costs whatever its size (dispatch and autograd's bookkeeping) and what grows with it; with
+    the compiled kernels one by one (a cloud smaller than a batch) and compiled whole (the others).
+    The normal term (the fit's first half) is left out; it adds one cheap loss."""
     import torch
 
     from core.fit import matmul_dtype_for, step_loss
@@ -582,16 +584,16 @@ def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32,
         f"{'bfloat16' if dtype is not None else 'float32'} products, {torch.get_num_threads()} threads; "
         f"median ms of {repeats} steps after {warm_ups} (the step's own median, not the parts' sum).",
         "",
-        "| input points | eikonal samples | draw | forward | backward | Adam | step |",
-        "|---|---|---|---|---|---|---|",
+        "| step | input points | eikonal samples | draw | forward | backward | Adam | step |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for size in sizes:
+    for (whole, path), size in itertools.product([(False, "kernels"), (True, "compiled whole")], sizes):
         times: dict[str, list[float]] = {"draw": [], "forward": [], "backward": [], "Adam": [], "step": []}
         for _ in range(warm_ups + repeats):
             started = time.perf_counter()
             batch, samples, rows = draw_batch(cloud, scales, size, generator, residuals, params.residual_share)
             drawn = time.perf_counter()
-            loss, _, _, batch_residuals = step_loss(model, batch, samples, params, free_space, dtype)
+            loss, _, _, batch_residuals = step_loss(model, batch, samples, params, free_space, dtype, None, whole)
             residuals[rows] = batch_residuals
             forward = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
@@ -603,7 +605,7 @@ def step_parts(overrides: dict, repeats: int = 30, sizes: tuple[int, ...] = (32,
             for part, (start, end) in zip(times, spans, strict=True):
                 times[part].append((end - start) * 1000)
         cells = " | ".join(f"{statistics.median(values[warm_ups:]):.2f}" for values in times.values())
-        lines.append(f"| {size:,} | {len(samples):,} | {cells} |")
+        lines.append(f"| {path} | {size:,} | {len(samples):,} | {cells} |")
     return "\n".join(lines)
 
 
