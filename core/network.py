@@ -371,6 +371,14 @@ class _Kernels:
         if self.warm_up is not None and self.warm_up is not threading.current_thread():
             self.finish_warm_up()
         if name not in self._functions:
+            if name in self._static:
+                # A whole step's graph holds the autograd Functions' forward and backward as traced
+                # subgraphs, so the graph itself keys the autograd cache; let it use that cache,
+                # which torch leaves off for such graphs: loading a fit's three steps from the
+                # disk took 12.3 s without it, 6.4 s with it.
+                from torch._functorch import config as functorch_config  # loaded by torch.compile anyway
+
+                functorch_config.autograd_cache_allow_custom_autograd_functions = True
             self._functions[name] = torch.compile(eager, dynamic=name not in self._static)
         compiled = self._functions[name]
         from torch._dynamo.exc import BackendCompilerFailed  # loaded by torch.compile already
