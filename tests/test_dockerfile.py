@@ -9,18 +9,27 @@ import sys
 
 from tests.helpers import ROOT
 
-# A second process's view of the cache: the same tiny fit with the kernels compiled, and how many
-# compiled graphs came from the cache (hit) or had to be compiled (miss).
+# A second process's view of the cache: fits of other clouds with the kernels compiled (a tiny one
+# extracted, and a default one of more than 8,192 points to its first steps compiled whole), and
+# how many compiled graphs came from the cache (hit) or had to be compiled (miss).
 _CACHE_USE = """
 from torch._dynamo.utils import counters
 from core.runtime import configure
 configure(compile=True)
+from core.errors import Cancelled
+from core.fit import EAGER_STEPS, fit
 from core.params import FitParams
 from core.reconstruct import reconstruct
 from evaluation.shapes import sample_shape
 points = sample_shape('sphere', n_points=3000, seed=5).points
+dense = sample_shape('cube', n_points=9000, seed=5).points
 for encoding in ('never', 'always'):
     reconstruct(points, FitParams(iterations=3, resolution=40, encoding=encoding))
+    steps = []
+    try:
+        fit(dense, FitParams(encoding=encoding), lambda update: steps.append(1), lambda: len(steps) > EAGER_STEPS + 1)
+    except Cancelled:
+        pass
 print(counters["inductor"]["fxgraph_cache_hit"], counters["inductor"]["fxgraph_cache_miss"])
 """
 
