@@ -22,7 +22,7 @@ from core.network import (
 )
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
-from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_normals, subsample_rows
+from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_fits, subsample_rows
 
 # The most input points a fit draws its batches from. 1,800 steps of 512 to 1,024 points see each
 # of 131,072 points 9 times; beyond that, more points only add set-up (neighbour queries at every
@@ -87,9 +87,9 @@ def fit(
     many), the later steps are compiled whole, once for each shape they take (``step_loss``).
     With ``encoding="auto"`` the network starts without Fourier features and, in a fit of at least
     ``CHECKED_ITERATIONS`` steps whose residuals at its ``CHECK_SHARE`` have a heavier tail than
-    noise (``residual_tail`` above ``TAIL_LIMIT``) that reaches past ``MISS_FLOOR`` and the points'
-    spacing, starts again with ``features`` of them: the same fit as ``encoding="always"``, after
-    those extra steps.
+    noise (``residual_tail`` above ``TAIL_LIMIT``, or reaching past ``NOISE_TAIL_LIMIT`` times the
+    cloud's noise width) that reaches past ``MISS_FLOOR`` and the points' spacing, starts again
+    with ``features`` of them: the same fit as ``encoding="always"``, after those extra steps.
     Last, f is shifted so that its median at the points is 0 (``centre_level``).
     ``should_cancel`` is polled every step, and often during the set-up before the first (the
     neighbour queries and the free-space map take seconds); when it returns True, ``Cancelled``
@@ -103,7 +103,7 @@ def fit(
     check = None
     if params.encoding == "auto" and params.features > 0 and params.iterations >= CHECKED_ITERATIONS:
         floor = max(MISS_FLOOR, setup.spacing)
-        check = _Check(round(CHECK_SHARE * params.iterations), level_points, floor)
+        check = _Check(round(CHECK_SHARE * params.iterations), level_points, floor, setup.noise)
     model = _train(cloud, setup, params, features, progress, should_cancel, check)
     if model is None:
         assert check is not None
@@ -142,16 +142,34 @@ TAIL_LIMIT = 5.5
 # worse (box_hole's exact d_H 0.0133 -> 0.0250), while the shapes they help reach past it
 # (featuretype's 4,096 points 0.040 against 0.024).
 MISS_FLOOR = 0.02
+# ... or the 99.9th percentile over the cloud's own noise width (``core.sampling.plane_fits``) above
+# this, which also restarts the fit. The ratio above is taken over the fit's median residual, which a
+# fit that is rough everywhere raises with its tail: featuretype's plain fits read 5.12 at seed 0 on
+# an AMD EPYC and 5.40 on a Xeon with AMX, under the limit, with 3 % of their normals flipped and
+# exact d_H 0.049-0.051 against Poisson's 0.032 (with the features 0.028). Over the noise width,
+# halfway through default fits on an AMD EPYC (docs/benchmarks.md), 38 clouds a plain fit follows
+# (the nine sample shapes at seeds 0 and 1, box_hole's 4,096-point and noise-0.010 clouds, the eight
+# open variants, the twelve parts of bench/parts.py) gave 3.22-4.73, featuretype 5.44, 6.78 and
+# 7.02 at seeds 0 to 2. (Noise alone gives 3.29 σ over the width, which reads 0.78 σ at the sample
+# shapes' noise and density: 4.2.)
+NOISE_TAIL_LIMIT = 5.0
 
 
 @dataclass(frozen=True)
 class _Check:
-    """When ``_train`` reads the residuals (the step), where (the points, (n, 3)), and how far
-    their tail must reach for a restart (the floor, unit frame)."""
+    """When ``_train`` reads the residuals (the step), where (the points, (n, 3)), how far their
+    tail must reach for a restart (the floor, unit frame), and the cloud's noise width."""
 
     step: int
     points: Tensor
     floor: float
+    noise: float
+
+    def misses(self, tail: float, reach: float) -> bool:
+        """Whether residuals with this ``tail`` and ``reach`` (``residual_tail``) show points the fit
+        misses: a tail past ``TAIL_LIMIT``, or a reach past ``NOISE_TAIL_LIMIT`` noise widths, that
+        reaches past the floor."""
+        return (tail > TAIL_LIMIT or reach > NOISE_TAIL_LIMIT * self.noise) and reach > self.floor
 
 
 @dataclass(frozen=True)
@@ -159,12 +177,13 @@ class _SetUp:
     """What every step of a fit reads besides the network: the points' local scales (n,), the
     free-space map, and the normal term's normals with whether each is oriented; and the points'
     spacing (the median distance to the fourth nearest point), below which ``encoding="auto"``
-    takes no residual for a miss."""
+    takes no residual for a miss, and their noise width (``plane_fits``), its other scale."""
 
     scales: Tensor
     free_space: FreeSpace | None
     cloud_normals: tuple[Tensor, Tensor] | None
     spacing: float
+    noise: float
 
 
 def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | None) -> _SetUp:
@@ -173,20 +192,18 @@ def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | 
     distances = neighbour_distances(tree, points, [1, 4, min(50, len(points) - 1)], should_cancel)
     scales = torch.as_tensor(distances[:, 2], dtype=torch.float32)
     # The cloud's own (unoriented) normals: the free-space map's walls for an open cloud, and the
-    # normal term's targets.
-    planes = None
-    if params.lambda3 > 0 or params.lambda4 > 0:
-        planes = plane_normals(points, params.seed, should_cancel, tree=tree)
+    # normal term's targets; and its noise width, for ``encoding="auto"``.
+    planes, noise = plane_fits(points, params.seed, should_cancel, tree=tree)
     free_space = None
     if params.lambda3 > 0:
         free_space = FreeSpace(points, tree=tree, spacing=distances[:, :2], normals=planes, should_cancel=should_cancel)
     # The normal term's normals, oriented where the free-space map tells, and whether they are.
     cloud_normals = None
-    if planes is not None and params.lambda4 > 0:
+    if params.lambda4 > 0:
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
-    return _SetUp(scales, free_space, cloud_normals, float(np.median(distances[:, 1])))
+    return _SetUp(scales, free_space, cloud_normals, float(np.median(distances[:, 1])), noise)
 
 
 def _train(
@@ -199,8 +216,8 @@ def _train(
     check: _Check | None = None,
 ) -> ImplicitNetwork | None:
     """A network with ``features`` Fourier features, trained on ``cloud`` (n, 3) for
-    ``params.iterations`` steps; None when ``check`` finds its residuals' tail past ``TAIL_LIMIT``
-    and its floor at its step (the steps after it are not taken)."""
+    ``params.iterations`` steps; None when ``check`` finds at its step that the fit misses points
+    (``_Check.misses``; the steps after it are not taken)."""
     generator = torch.Generator().manual_seed(params.seed)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's own initialisation draws from torch's global generator
         model = ImplicitNetwork(
@@ -269,8 +286,7 @@ def _train(
     def too_far(iteration: int) -> bool:
         if check is None or iteration != check.step:
             return False
-        tail, reach = residual_tail(model, check.points)
-        return tail > TAIL_LIMIT and reach > check.floor
+        return check.misses(*residual_tail(model, check.points))
 
     def warm_steps(network: ImplicitNetwork) -> None:
         """A step of each shape the fit's compiled steps take, on ``network`` (a copy)."""

@@ -175,13 +175,29 @@ def plane_normals(
     should_cancel: CancelCheck | None = None,
     tree: cKDTree | None = None,
 ) -> np.ndarray:
+    """Unoriented unit normals (N, 3) of ``points``: the normals of ``plane_fits``."""
+    return plane_fits(points, seed, should_cancel, tree)[0]
+
+
+def plane_fits(
+    points: np.ndarray,
+    seed: int = 0,
+    should_cancel: CancelCheck | None = None,
+    tree: cKDTree | None = None,
+) -> tuple[np.ndarray, float]:
     """Unoriented unit normals (N, 3): for each point, the normal of the plane through the
-    ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread).
+    ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread); and the
+    cloud's noise width, the median over those planes of the RMS distance of their points from them.
 
     The planes are fitted at the density of ``PLANE_POINTS`` points (a seeded subsample of a larger
     cloud, each point taking the normal of its nearest subsample point), so that a plane spans the
     same area, and averages away the same noise, however dense the cloud. ``tree``, the k-d tree of
     ``points``, may be given when the caller has it; it serves when there is no subsample.
+    The noise width is the cloud's own scale for how far a fit's residuals may reach: for noise of
+    width σ along the normal of a flat face, well under the points' spacing, it is 0.88 σ (a plane
+    through 16 points takes up 3 of their degrees of freedom); noise as wide as the spacing reads
+    less (the nearest points in space are those nearest the plane: 0.78 σ for the sample shapes'
+    noise and density), curvature within a plane's span more.
     """
     sample = points
     if len(points) > PLANE_POINTS:
@@ -189,18 +205,20 @@ def plane_normals(
         tree = None
     tree = tree if tree is not None else build_tree(sample, should_cancel)
     workers = torch.get_num_threads()
-    _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=workers)
+    neighbours = min(PLANE_NEIGHBOURS, len(sample))
+    _, rows = tree.query(sample, k=neighbours, workers=workers)
     around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
+    spreads, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
+    noise = float(np.median(np.sqrt(np.maximum(spreads[:, 0], 0.0) / neighbours)))
     normals = vectors[:, :, 0]
     if sample is points:
-        return normals
+        return normals, noise
     nearest = np.empty(len(points), dtype=np.int64)
     chunk = 8 * QUERY_CHUNK  # k = 1: a fraction of the time of the neighbour queries' chunks
     for start in range(0, len(points), chunk):
         check_cancel(should_cancel)
         _, nearest[start : start + chunk] = tree.query(points[start : start + chunk], workers=workers)
-    return normals[nearest]
+    return normals[nearest], noise
 
 
 class FreeSpace:

@@ -8,6 +8,7 @@ bounds measured on it with a margin. The fit with the shipped defaults is in tes
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 
@@ -123,11 +124,26 @@ def test_plane_normals_are_the_normals_of_a_noisy_sphere_and_plane():
 def test_plane_normals_of_a_dense_cloud_are_those_of_its_nearest_subsample_points(monkeypatch):
     monkeypatch.setattr(sampling, "PLANE_POINTS", 1000)
     points = np.random.default_rng(8).normal(size=(5000, 3))
-    normals = sampling.plane_normals(points, seed=2)
+    normals, noise = sampling.plane_fits(points, seed=2)
     rows = np.sort(np.random.default_rng(2).choice(5000, 1000, replace=False))
-    on_sample = sampling.plane_normals(points[rows])  # 1000 points: no subsample of its own
+    on_sample, sample_noise = sampling.plane_fits(points[rows])  # 1000 points: no subsample of its own
     nearest = np.linalg.norm(points[:, None] - points[rows][None], axis=2).argmin(axis=1)
     np.testing.assert_array_equal(normals, on_sample[nearest])
+    assert noise == sample_noise
+
+
+@pytest.mark.parametrize("width", [0.001, 0.0025])
+def test_the_noise_width_of_a_flat_face_with_noise_under_its_spacing_is_its_planes_rms_share_of_the_noise(width):
+    """Noise of width σ along a plane's normal, well under the points' spacing (0.008 here): the RMS
+    distance of 16 points from the plane fitted through them is σ √(χ²₁₃ / 16) (the plane takes 3
+    degrees of freedom), whose median is 0.878 σ. (Noise as wide as the spacing reads less: the
+    nearest points in space are those nearest the plane; 0.78 σ at the sample shapes' 0.005.)"""
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(9)
+    plane = np.c_[rng.uniform(-0.5, 0.5, (16_384, 2)), rng.normal(0, width, 16_384)]
+    expected = width * np.sqrt(chi2.median(sampling.PLANE_NEIGHBOURS - 3) / sampling.PLANE_NEIGHBOURS)
+    assert sampling.plane_fits(plane)[1] == pytest.approx(expected, rel=0.03)
 
 
 def test_free_space_knows_inside_from_outside_of_a_closed_cloud():
@@ -559,15 +575,21 @@ def _median_spacing(points: np.ndarray) -> float:
     return float(np.median(distances[:, 4]))
 
 
-@pytest.mark.parametrize(("tail", "reach", "restarted"), [(6.0, 1.1, True), (6.0, 0.9, False), (5.0, 10.0, False)])
+@pytest.mark.parametrize(
+    ("tail", "reach", "noise_limit", "restarted"),
+    [(6.0, 1.1, math.inf, True), (6.0, 0.9, math.inf, False), (5.0, 10.0, math.inf, False), (5.0, 1.1, 5.0, True)],
+)
 def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_features_and_is_that_fit(
-    monkeypatch, tail, reach, restarted
+    monkeypatch, tail, reach, noise_limit, restarted
 ):
-    """A tail past the limit that reaches past the floor and the points' spacing (reach: in
-    units of the larger) restarts the auto fit, which is then the fit with features, bit for bit,
-    after the first half's steps, its progress going on from them; else it is the fit without."""
+    """A tail past the limit, or a reach past the noise limit's noise widths, that reaches past
+    the floor and the points' spacing (reach: in units of the larger) restarts the auto fit, which is
+    then the fit with features, bit for bit, after the first half's steps, its progress going on
+    from them; else it is the fit without."""
     points = sample_shape("cube", n_points=1000, seed=0).points
     floor = max(fit_module.MISS_FLOOR, _median_spacing(points))
+    # 1,000 points are so sparse that their floor is past 5 noise widths: the last case's reach passes both.
+    assert floor > 5.0 * sampling.plane_fits(points)[1]
     read: list[int] = []
 
     def residual_tail(model, at):
@@ -575,6 +597,7 @@ def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_feat
         return tail, reach * floor
 
     monkeypatch.setattr(fit_module, "TAIL_LIMIT", 5.5)
+    monkeypatch.setattr(fit_module, "NOISE_TAIL_LIMIT", noise_limit)
     monkeypatch.setattr(fit_module, "residual_tail", residual_tail)
     monkeypatch.setattr(fit_module, "CHECKED_ITERATIONS", 8)
     params = FitParams(iterations=8, seed=2, features=4, **{**SMALL, "encoding": "auto"})
@@ -588,6 +611,20 @@ def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_feat
     steps = 8 + 4 if restarted else 8
     assert [p.iteration for p in seen] == list(range(1, steps + 1))
     assert [p.total for p in seen] == [8] * 4 + [steps] * (steps - 4)
+
+
+@pytest.mark.parametrize(
+    ("tail", "reach", "missed"),
+    [(5.6, 0.021, True), (5.4, 0.021, False), (5.4, 0.0251, True), (5.6, 0.019, False), (9.0, 0.0199, False)],
+)
+def test_the_check_reads_a_miss_from_the_tail_or_from_the_reach_over_the_noise_width_past_the_floor(
+    tail, reach, missed
+):
+    """Noise width 0.005: 5 of them are 0.025; the floor 0.02 (a miss that reaches less is not worth
+    the features); the tail limit 5.5. The last: a heavy tail under the floor."""
+    check = fit_module._Check(step=900, points=torch.zeros(1, 3), floor=0.02, noise=0.005)
+    assert (fit_module.TAIL_LIMIT, fit_module.NOISE_TAIL_LIMIT) == (5.5, 5.0)
+    assert check.misses(tail, reach) is missed
 
 
 @pytest.mark.parametrize(("iterations", "features"), [(4, 0), (3, 4)])
