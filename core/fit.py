@@ -22,7 +22,15 @@ from core.network import (
 )
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
-from core.sampling import FreeSpace, build_tree, draw_batch, neighbour_distances, plane_fits, subsample_rows
+from core.sampling import (
+    FreeSpace,
+    build_tree,
+    draw_batch,
+    neighbour_distances,
+    noise_width,
+    plane_normals,
+    subsample_rows,
+)
 
 # The most input points a fit draws its batches from. 1,800 steps of 512 to 1,024 points see each
 # of 131,072 points 9 times; beyond that, more points only add set-up (neighbour queries at every
@@ -142,16 +150,16 @@ TAIL_LIMIT = 5.5
 # worse (box_hole's exact d_H 0.0133 -> 0.0250), while the shapes they help reach past it
 # (featuretype's 4,096 points 0.040 against 0.024).
 MISS_FLOOR = 0.02
-# ... or the 99.9th percentile over the cloud's own noise width (``core.sampling.plane_fits``) above
+# ... or the 99.9th percentile over the cloud's own noise width (``core.sampling.noise_width``) above
 # this, which also restarts the fit. The ratio above is taken over the fit's median residual, which a
 # fit that is rough everywhere raises with its tail: featuretype's plain fits read 5.12 at seed 0 on
 # an AMD EPYC and 5.40 on a Xeon with AMX, under the limit, with 3 % of their normals flipped and
 # exact d_H 0.049-0.051 against Poisson's 0.032 (with the features 0.028). Over the noise width,
-# halfway through default fits on an AMD EPYC (docs/benchmarks.md), 38 clouds a plain fit follows
+# halfway through default fits on an AMD EPYC (docs/benchmarks.md), 44 clouds a plain fit follows
 # (the nine sample shapes at seeds 0 and 1, box_hole's 4,096-point and noise-0.010 clouds, the eight
-# open variants, the twelve parts of bench/parts.py) gave 3.22-4.73, featuretype 5.44, 6.78 and
-# 7.02 at seeds 0 to 2. (Noise alone gives 3.29 σ over the width, which reads 0.78 σ at the sample
-# shapes' noise and density: 4.2.)
+# open variants, the twelve parts of bench/parts.py, six public models with the bunny scan) read
+# 3.22-4.53; featuretype 5.44, 6.78 and 7.02 at seeds 0 to 2, and the two public parts the tail
+# rule restarts 5.63 and 7.45. (Noise alone: 3.29 σ over a width of 0.82-0.88 σ, about 3.9.)
 NOISE_TAIL_LIMIT = 5.0
 
 
@@ -177,7 +185,7 @@ class _SetUp:
     """What every step of a fit reads besides the network: the points' local scales (n,), the
     free-space map, and the normal term's normals with whether each is oriented; and the points'
     spacing (the median distance to the fourth nearest point), below which ``encoding="auto"``
-    takes no residual for a miss, and their noise width (``plane_fits``), its other scale."""
+    takes no residual for a miss, and their noise width (``noise_width``), its other scale."""
 
     scales: Tensor
     free_space: FreeSpace | None
@@ -192,18 +200,21 @@ def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | 
     distances = neighbour_distances(tree, points, [1, 4, min(50, len(points) - 1)], should_cancel)
     scales = torch.as_tensor(distances[:, 2], dtype=torch.float32)
     # The cloud's own (unoriented) normals: the free-space map's walls for an open cloud, and the
-    # normal term's targets; and its noise width, for ``encoding="auto"``.
-    planes, noise = plane_fits(points, params.seed, should_cancel, tree=tree)
+    # normal term's targets.
+    planes = None
+    if params.lambda3 > 0 or params.lambda4 > 0:
+        planes = plane_normals(points, params.seed, should_cancel, tree=tree)
     free_space = None
     if params.lambda3 > 0:
         free_space = FreeSpace(points, tree=tree, spacing=distances[:, :2], normals=planes, should_cancel=should_cancel)
     # The normal term's normals, oriented where the free-space map tells, and whether they are.
     cloud_normals = None
-    if params.lambda4 > 0:
+    if planes is not None and params.lambda4 > 0:
         sides = free_space.outward(points, planes) if free_space is not None else np.zeros(len(points), np.int8)
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
-    return _SetUp(scales, free_space, cloud_normals, float(np.median(distances[:, 1])), noise)
+    spacing = float(np.median(distances[:, 1]))
+    return _SetUp(scales, free_space, cloud_normals, spacing, noise_width(points, spacing, params.seed))
 
 
 def _train(

@@ -30,6 +30,10 @@ MAX_GRID_CELLS = 256
 # of 16 points; 8 neighbours gave noisier planes, 32 wider ones that bend over small holes.
 PLANE_NEIGHBOURS = 16
 PLANE_POINTS = 16_384
+# The spacing at which ``noise_width`` fits its planes: a denser cloud is subsampled to it. Where the
+# noise is as wide as the spacing the width reads less than the noise (a public part whose points lie
+# 0.0064 apart: 0.59 σ at its own spacing, 0.82 σ at this one; the sample shapes lie 0.013-0.021 apart).
+NOISE_SPACING = 0.012
 # How far to each side of a point (in free-space voxels) its normal's orientation is read: past the
 # shell of dilated voxels around the points, whose sign is unknown (on the sample shapes: 94 to 100 %
 # of the points of the CAD parts oriented, 81 % of featuretype's, nearly all wrong ones on edges).
@@ -175,29 +179,13 @@ def plane_normals(
     should_cancel: CancelCheck | None = None,
     tree: cKDTree | None = None,
 ) -> np.ndarray:
-    """Unoriented unit normals (N, 3) of ``points``: the normals of ``plane_fits``."""
-    return plane_fits(points, seed, should_cancel, tree)[0]
-
-
-def plane_fits(
-    points: np.ndarray,
-    seed: int = 0,
-    should_cancel: CancelCheck | None = None,
-    tree: cKDTree | None = None,
-) -> tuple[np.ndarray, float]:
     """Unoriented unit normals (N, 3): for each point, the normal of the plane through the
-    ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread); and the
-    cloud's noise width, the median over those planes of the RMS distance of their points from them.
+    ``PLANE_NEIGHBOURS`` nearest points (the least principal direction of their spread).
 
     The planes are fitted at the density of ``PLANE_POINTS`` points (a seeded subsample of a larger
     cloud, each point taking the normal of its nearest subsample point), so that a plane spans the
     same area, and averages away the same noise, however dense the cloud. ``tree``, the k-d tree of
     ``points``, may be given when the caller has it; it serves when there is no subsample.
-    The noise width is the cloud's own scale for how far a fit's residuals may reach: for noise of
-    width σ along the normal of a flat face, well under the points' spacing, it is 0.88 σ (a plane
-    through 16 points takes up 3 of their degrees of freedom); noise as wide as the spacing reads
-    less (the nearest points in space are those nearest the plane: 0.78 σ for the sample shapes'
-    noise and density), curvature within a plane's span more.
     """
     sample = points
     if len(points) > PLANE_POINTS:
@@ -205,20 +193,40 @@ def plane_fits(
         tree = None
     tree = tree if tree is not None else build_tree(sample, should_cancel)
     workers = torch.get_num_threads()
-    neighbours = min(PLANE_NEIGHBOURS, len(sample))
-    _, rows = tree.query(sample, k=neighbours, workers=workers)
+    _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=workers)
     around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
-    spreads, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
-    noise = float(np.median(np.sqrt(np.maximum(spreads[:, 0], 0.0) / neighbours)))
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
     normals = vectors[:, :, 0]
     if sample is points:
-        return normals, noise
+        return normals
     nearest = np.empty(len(points), dtype=np.int64)
     chunk = 8 * QUERY_CHUNK  # k = 1: a fraction of the time of the neighbour queries' chunks
     for start in range(0, len(points), chunk):
         check_cancel(should_cancel)
         _, nearest[start : start + chunk] = tree.query(points[start : start + chunk], workers=workers)
-    return normals[nearest], noise
+    return normals[nearest]
+
+
+def noise_width(points: np.ndarray, spacing: float, seed: int = 0) -> float:
+    """The cloud's noise width: the median, over the planes through each point's ``PLANE_NEIGHBOURS``
+    nearest points, of their RMS distance from it; fitted at a spacing of at least ``NOISE_SPACING``
+    (``spacing``: the cloud's median distance to its fourth nearest point; a denser cloud is
+    subsampled, seeded).
+
+    The cloud's own scale for how far a fit's residuals may reach (``core.fit``). For noise of width
+    σ along a flat face, well under the spacing, it is 0.88 σ (a plane through 16 points takes up 3
+    of their degrees of freedom); noise as wide as the spacing reads less, since the nearest points
+    in space are then those nearest the plane; curvature within a plane's span reads more.
+    """
+    count = len(points)
+    if spacing < NOISE_SPACING:
+        count = max(PLANE_NEIGHBOURS, round(len(points) * (spacing / NOISE_SPACING) ** 2))
+    sample = points[subsample_rows(len(points), count, seed)]
+    neighbours = min(PLANE_NEIGHBOURS, len(sample))
+    _, rows = build_tree(sample).query(sample, k=neighbours, workers=torch.get_num_threads())
+    around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
+    spreads = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", around, around))[:, 0]
+    return float(np.median(np.sqrt(np.maximum(spreads, 0.0) / neighbours)))
 
 
 class FreeSpace:

@@ -15,6 +15,8 @@ import time
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from core import fit as fit_module
 from core import network, sampling
@@ -124,26 +126,42 @@ def test_plane_normals_are_the_normals_of_a_noisy_sphere_and_plane():
 def test_plane_normals_of_a_dense_cloud_are_those_of_its_nearest_subsample_points(monkeypatch):
     monkeypatch.setattr(sampling, "PLANE_POINTS", 1000)
     points = np.random.default_rng(8).normal(size=(5000, 3))
-    normals, noise = sampling.plane_fits(points, seed=2)
+    normals = sampling.plane_normals(points, seed=2)
     rows = np.sort(np.random.default_rng(2).choice(5000, 1000, replace=False))
-    on_sample, sample_noise = sampling.plane_fits(points[rows])  # 1000 points: no subsample of its own
+    on_sample = sampling.plane_normals(points[rows])  # 1000 points: no subsample of its own
     nearest = np.linalg.norm(points[:, None] - points[rows][None], axis=2).argmin(axis=1)
     np.testing.assert_array_equal(normals, on_sample[nearest])
-    assert noise == sample_noise
 
 
-@pytest.mark.parametrize("width", [0.001, 0.0025])
-def test_the_noise_width_of_a_flat_face_with_noise_under_its_spacing_is_its_planes_rms_share_of_the_noise(width):
-    """Noise of width σ along a plane's normal, well under the points' spacing (0.008 here): the RMS
-    distance of 16 points from the plane fitted through them is σ √(χ²₁₃ / 16) (the plane takes 3
-    degrees of freedom), whose median is 0.878 σ. (Noise as wide as the spacing reads less: the
-    nearest points in space are those nearest the plane; 0.78 σ at the sample shapes' 0.005.)"""
-    from scipy.stats import chi2
-
+def _noisy_plane(count: int, width: float) -> tuple[np.ndarray, float]:
+    """``count`` points on the unit square, moved along its normal by normal noise of ``width``,
+    and their spacing (the median distance to the fourth nearest other point)."""
     rng = np.random.default_rng(9)
-    plane = np.c_[rng.uniform(-0.5, 0.5, (16_384, 2)), rng.normal(0, width, 16_384)]
-    expected = width * np.sqrt(chi2.median(sampling.PLANE_NEIGHBOURS - 3) / sampling.PLANE_NEIGHBOURS)
-    assert sampling.plane_fits(plane)[1] == pytest.approx(expected, rel=0.03)
+    plane = np.c_[rng.uniform(-0.5, 0.5, (count, 2)), rng.normal(0, width, count)]
+    return plane, float(np.median(cKDTree(plane).query(plane, k=5)[0][:, 4]))
+
+
+@pytest.mark.parametrize("count", [4096, 16_384])
+def test_the_noise_width_of_a_flat_face_with_noise_under_its_spacing_is_its_planes_rms_share_of_the_noise(count):
+    """Noise of width σ along a plane's normal, well under the points' spacing: the RMS distance of
+    16 points from the plane fitted through them is σ √(χ²₁₃ / 16) (the plane takes 3 degrees of
+    freedom), whose median is 0.878 σ."""
+    plane, spacing = _noisy_plane(count, 0.001)
+    expected = 0.001 * np.sqrt(chi2.median(sampling.PLANE_NEIGHBOURS - 3) / sampling.PLANE_NEIGHBOURS)
+    assert sampling.noise_width(plane, spacing) == pytest.approx(expected, rel=0.03)
+
+
+def test_a_dense_cloud_reads_the_noise_width_of_a_sparse_one(monkeypatch):
+    """Noise of 0.0025 on planes of 4,096 and 65,536 points (spacing 0.017 and 0.005): fitted at
+    their own spacing, the dense one's 16 nearest points are those nearest its plane, and read 11 %
+    less; at ``NOISE_SPACING`` both read the same to 2 %."""
+    sparse, sparse_spacing = _noisy_plane(4096, 0.0025)
+    dense, dense_spacing = _noisy_plane(65_536, 0.0025)
+    assert dense_spacing < sampling.NOISE_SPACING < sparse_spacing
+    reference = sampling.noise_width(sparse, sparse_spacing)
+    assert sampling.noise_width(dense, dense_spacing) == pytest.approx(reference, rel=0.02)
+    monkeypatch.setattr(sampling, "NOISE_SPACING", 0.0)
+    assert sampling.noise_width(dense, dense_spacing) < 0.9 * reference
 
 
 def test_free_space_knows_inside_from_outside_of_a_closed_cloud():
@@ -589,7 +607,7 @@ def test_a_fit_whose_residuals_pass_the_limit_halfway_starts_again_with_the_feat
     points = sample_shape("cube", n_points=1000, seed=0).points
     floor = max(fit_module.MISS_FLOOR, _median_spacing(points))
     # 1,000 points are so sparse that their floor is past 5 noise widths: the last case's reach passes both.
-    assert floor > 5.0 * sampling.plane_fits(points)[1]
+    assert floor > 5.0 * sampling.noise_width(points, _median_spacing(points))
     read: list[int] = []
 
     def residual_tail(model, at):
