@@ -214,7 +214,7 @@ def _set_up(points: np.ndarray, params: FitParams, should_cancel: CancelCheck | 
         oriented = torch.as_tensor(planes * np.where(sides == 0, 1, sides)[:, None], dtype=torch.float32)
         cloud_normals = (oriented, torch.as_tensor(sides != 0))
     spacing = float(np.median(distances[:, 1]))
-    return _SetUp(scales, free_space, cloud_normals, spacing, noise_width(points, spacing, params.seed))
+    return _SetUp(scales, free_space, cloud_normals, spacing, noise_width(points, spacing, params.seed, tree))
 
 
 def _train(

@@ -192,13 +192,10 @@ def plane_normals(
         sample = points[subsample_rows(len(points), PLANE_POINTS, seed)]
         tree = None
     tree = tree if tree is not None else build_tree(sample, should_cancel)
-    workers = torch.get_num_threads()
-    _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=workers)
-    around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
-    normals = vectors[:, :, 0]
+    normals = _neighbour_planes(sample, tree)[1][:, :, 0]
     if sample is points:
         return normals
+    workers = torch.get_num_threads()
     nearest = np.empty(len(points), dtype=np.int64)
     chunk = 8 * QUERY_CHUNK  # k = 1: a fraction of the time of the neighbour queries' chunks
     for start in range(0, len(points), chunk):
@@ -207,7 +204,7 @@ def plane_normals(
     return normals[nearest]
 
 
-def noise_width(points: np.ndarray, spacing: float, seed: int = 0) -> float:
+def noise_width(points: np.ndarray, spacing: float, seed: int = 0, tree: cKDTree | None = None) -> float:
     """The cloud's noise width: the median, over the planes through each point's ``PLANE_NEIGHBOURS``
     nearest points, of their RMS distance from it; fitted at a spacing of at least ``NOISE_SPACING``
     (``spacing``: the cloud's median distance to its fourth nearest point; a denser cloud is
@@ -217,16 +214,26 @@ def noise_width(points: np.ndarray, spacing: float, seed: int = 0) -> float:
     σ along a flat face, well under the spacing, it is 0.88 σ (a plane through 16 points takes up 3
     of their degrees of freedom); noise as wide as the spacing reads less, since the nearest points
     in space are then those nearest the plane; curvature within a plane's span reads more.
+    ``tree``, the k-d tree of ``points``, may be given when the caller has it; it serves when there
+    is no subsample.
     """
-    count = len(points)
+    sample = points
     if spacing < NOISE_SPACING:
         count = max(PLANE_NEIGHBOURS, round(len(points) * (spacing / NOISE_SPACING) ** 2))
-    sample = points[subsample_rows(len(points), count, seed)]
-    neighbours = min(PLANE_NEIGHBOURS, len(sample))
-    _, rows = build_tree(sample).query(sample, k=neighbours, workers=torch.get_num_threads())
+        sample = points[subsample_rows(len(points), count, seed)]
+        tree = None
+    spreads = _neighbour_planes(sample, tree if tree is not None else build_tree(sample))[0][:, 0]
+    return float(np.median(np.sqrt(np.maximum(spreads, 0.0) / min(PLANE_NEIGHBOURS, len(sample)))))
+
+
+def _neighbour_planes(sample: np.ndarray, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+    """The planes through each point's ``PLANE_NEIGHBOURS`` nearest points of ``sample`` (n, 3),
+    ``tree`` its k-d tree: the spread of those points along the principal directions, least first
+    (n, 3; sums of squares about their mean), and the directions (n, 3, 3; columns)."""
+    _, rows = tree.query(sample, k=min(PLANE_NEIGHBOURS, len(sample)), workers=torch.get_num_threads())
     around = sample[rows] - sample[rows].mean(axis=1, keepdims=True)
-    spreads = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", around, around))[:, 0]
-    return float(np.median(np.sqrt(np.maximum(spreads, 0.0) / neighbours)))
+    spreads, directions = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
+    return spreads, directions
 
 
 class FreeSpace:
