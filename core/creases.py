@@ -83,10 +83,10 @@ CLOUD_POINTS = 32_768
 NORMAL_REACH = 0.09
 HELD_GAP = 0.02
 # Noise widths (the median spread of the faces' points off their refitted planes): a point takes a
-# face's normal if it lies within this many of that face's plane and this many nearer it than the
-# other's. Nearer the edge, noise may have carried a point from the other face, and a normal
-# given the wrong face of a right-angled edge points inward by a hair: at 2.5 one point of the
-# cube's 16,384 did (docs/benchmarks.md).
+# face's normal if it lies within this many of that face (the half-plane on its side of the edge,
+# or the rim's plane or wall) and this many nearer it than the other. Nearer the edge, noise may
+# have carried a point from the other face, and a normal given the wrong face of a right-angled
+# edge points inward by a hair: at 2.5 one point of the cube's 16,384 did (docs/benchmarks.md).
 CLEAR = 3.0
 MAX_TURN = 30.0  # degrees: the most a point's normal turns from the fit's to take its face's
 # Degrees: and the most the fit's normal may lean along the edge. A fit rounds an edge about the
@@ -94,6 +94,17 @@ MAX_TURN = 30.0  # degrees: the most a point's normal turns from the fit's to ta
 # face (a cylinder's wall at its rim) the plane refitted at a curve sample is turned along the edge
 # from the face's normal beside it, as ∇f there is.
 ALONG_EDGE = 2.0
+# A point nearer the edge than that, but within CLEAR of a face, takes the nearer face's normal all
+# the same: a wrong face costs the angle between the faces' normals, the fit's rounded normal about
+# half of it at every point, and the nearer face is the likelier. Where those normals are less than
+# HEDGE short of 90 degrees apart, the point's is turned towards the other's until they are HEDGE
+# short, so that a wrong face does not point inward (at 1 degree 4 points of l_bracket's 16,384
+# did, at 2 none of five shapes'; 4 leaves room for planes refitted to noisier points). At an acute
+# edge (normals more than HEDGE_LIMIT apart) that turn costs more than the fit's rounding: the
+# point keeps ∇f. On seed-0 fits, mean normal error: l_bracket 5.05° -> 4.13°, cube 2.27° ->
+# 1.97°, box_hole 3.29° -> 2.73° (docs/benchmarks.md).
+HEDGE = 4.0
+HEDGE_LIMIT = 95.0
 
 
 def onto_refitted(
@@ -147,10 +158,15 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
 
     The fit rounds every edge, so ∇f tilts towards the other face over a band some 0.04 wide
     beside it: on seed-0 fits of the sample parts, the points between 0.01 and 0.04 from an edge
-    carried a quarter to a third of the mean normal error. A point too near the edge to tell its
-    face (not ``CLEAR`` noise widths nearer one plane than the other) keeps the fit's normal, as
-    does one whose fit normal is more than ``MAX_TURN`` degrees from the face's (a third face's
-    point, near a corner) or leans along the edge by more than ``ALONG_EDGE`` (a curved face).
+    carried a quarter to a third of the mean normal error. A point's face is the nearer of the two
+    as faces end, at the edge (a half-plane, not the whole plane: at an edge of 135 degrees the
+    other face's plane runs on past the edge close beside this face). A point too near the edge to
+    tell its face for sure (not ``CLEAR`` noise widths nearer one than the other) takes the nearer
+    one's normal turned towards the other's as far as ``HEDGE`` asks, if ∇f there lies between the
+    two (within ``MAX_TURN``) and the edge is not acute (``HEDGE_LIMIT``); a point clear of the
+    edge takes its face's normal if ∇f is within ``MAX_TURN`` of it (a third face's point, near a
+    corner, is not). Either keeps ∇f where it leans along the edge by more than ``ALONG_EDGE`` (a
+    curved face).
     """
     if not curves:
         return normals
@@ -173,48 +189,95 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     to_any, _ = kd_tree(at).query(points[found], workers=workers)
     found = found[to_held[found] - to_any < HELD_GAP]
     sample = held[nearest[found]]
-    face, to_face, to_other = np.zeros((len(found), 3)), np.zeros(len(found)), np.zeros(len(found))
+    face, other = np.zeros((len(found), 3)), np.zeros((len(found), 3))
+    to_face, to_other = np.zeros(len(found)), np.zeros(len(found))
     on_planes = planes.holds[sample]
-    face[on_planes], to_face[on_planes], to_other[on_planes] = _face_of_planes(
-        points[found[on_planes]] - at[sample[on_planes]], planes, sample[on_planes]
+    face[on_planes], other[on_planes], to_face[on_planes], to_other[on_planes] = _face_of_planes(
+        points[found[on_planes]] - at[sample[on_planes]], planes, sample[on_planes], convex[sample[on_planes]]
     )
     rim_of = np.full(len(at), -1)
     rim_of[rim_rows] = np.arange(len(rim_rows))
     on_rims = ~on_planes
-    face[on_rims], to_face[on_rims], to_other[on_rims] = _face_of_rims(
+    face[on_rims], other[on_rims], to_face[on_rims], to_other[on_rims] = _face_of_rims(
         points[found[on_rims]], rims, rim_of[sample[on_rims]]
     )
-    clear = (to_other - to_face > CLEAR * noise) & (to_face < CLEAR * noise)
-    clear &= _dot(face, normals[found]) > np.cos(np.radians(MAX_TURN))
+    fitted = normals[found]
     edge = unit(np.cross(planes.normal_a[sample], planes.normal_b[sample]))
-    clear &= ~on_planes | (np.abs(_dot(normals[found], edge)) < np.sin(np.radians(ALONG_EDGE)))
+    near = to_face < CLEAR * noise
+    near &= ~on_planes | (np.abs(_dot(fitted, edge)) < np.sin(np.radians(ALONG_EDGE)))
+    clear = near & (to_other - to_face > CLEAR * noise) & (_dot(face, fitted) > np.cos(np.radians(MAX_TURN)))
+    apart = _angle(face, other)
+    between = _angle(fitted, face) + _angle(fitted, other) < apart + np.radians(MAX_TURN)
+    unsure = near & ~clear & between & (apart < np.radians(HEDGE_LIMIT))
     result = normals.copy()
     result[found[clear]] = face[clear]
+    turn = np.maximum(apart[unsure] - np.radians(90.0 - HEDGE), 0.0)
+    result[found[unsure]] = _turned(face[unsure], other[unsure], turn)
     return result
 
 
 def _face_of_planes(
-    offsets: np.ndarray, planes: _Planes, sample: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    offsets: np.ndarray, planes: _Planes, sample: np.ndarray, convex: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For points at ``offsets`` (n, 3) from their edge samples (rows ``sample`` (n,) of
-    ``planes``): the unit normal (n, 3) of the nearer plane, their distance to it (n,) and to the
-    other (n,)."""
-    to_a = np.abs(_dot(offsets, planes.normal_a[sample]) - planes.offset_a[sample])
-    to_b = np.abs(_dot(offsets, planes.normal_b[sample]) - planes.offset_b[sample])
-    face = np.where((to_a < to_b)[:, None], planes.normal_a[sample], planes.normal_b[sample])
-    return face, np.minimum(to_a, to_b), np.maximum(to_a, to_b)
+    ``planes``, on edges ``convex`` (n,) or not): the unit normals (n, 3) of the nearer face and
+    of the other, and their distances (n,) to the nearer and to the other. A face is the half of
+    its plane on its side of the line where the planes meet."""
+    normal_a, offset_a = planes.normal_a[sample], planes.offset_a[sample]
+    normal_b, offset_b = planes.normal_b[sample], planes.offset_b[sample]
+    from_line = offsets - _onto_line(normal_a, offset_a, normal_b, offset_b)
+    distances = []
+    for normal, offset, other in ((normal_a, offset_a, normal_b), (normal_b, offset_b, normal_a)):
+        across = _dot(offsets, normal) - offset
+        into = _dot(from_line, _into_face(normal, other, convex))
+        distances.append(np.where(into >= 0, np.abs(across), np.hypot(across, into)))
+    nearer_a = (distances[0] < distances[1])[:, None]
+    return (
+        np.where(nearer_a, normal_a, normal_b),
+        np.where(nearer_a, normal_b, normal_a),
+        np.minimum(*distances),
+        np.maximum(*distances),
+    )
 
 
-def _face_of_rims(points: np.ndarray, rims: _Rims, rim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For ``points`` (n, 3) beside their rims (rows ``rim`` (n,) of ``rims``): the unit normal (n,
+def _into_face(face: np.ndarray, other: np.ndarray, convex: np.ndarray) -> np.ndarray:
+    """The unit direction (c, 3) along a face (unit normals ``face`` (c, 3)) away from its edge
+    with the face of normals ``other`` (c, 3): into the other plane's solid side at a ``convex``
+    (c,) edge, out of it at a concave one."""
+    along = unit(np.cross(np.cross(face, other), face))
+    return along * np.where((_dot(along, other) < 0) != convex, -1.0, 1.0)[:, None]
+
+
+def _face_of_rims(
+    points: np.ndarray, rims: _Rims, rim: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For ``points`` (n, 3) beside their rims (rows ``rim`` (n,) of ``rims``): the unit normals (n,
     3) of the nearer of the rim's faces (the flat face's plane on its side of the circle, the
-    wall's cylinder past the plane), their distance to it (n,) and to the other (n,)."""
+    wall's cylinder past the plane) and of the other, and their distances (n,) to the nearer and
+    to the other."""
     depth, beyond, outward = _about_rim(points, rims, rim)
     to_flat = np.hypot(depth, np.minimum(beyond, 0.0))
     to_wall = np.hypot(beyond, np.minimum(depth, 0.0))
     wall = rims.facing[rim][:, None] * outward
-    face = np.where((to_flat < to_wall)[:, None], rims.flat[rim], wall)
-    return face, np.minimum(to_flat, to_wall), np.maximum(to_flat, to_wall)
+    nearer_flat = (to_flat < to_wall)[:, None]
+    return (
+        np.where(nearer_flat, rims.flat[rim], wall),
+        np.where(nearer_flat, wall, rims.flat[rim]),
+        np.minimum(to_flat, to_wall),
+        np.maximum(to_flat, to_wall),
+    )
+
+
+def _turned(face: np.ndarray, other: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Unit vectors ``face`` (n, 3) turned towards ``other`` (n, 3) by ``angle`` (n,) radians, in
+    their plane."""
+    towards = unit(other - _dot(face, other)[:, None] * face)
+    return np.cos(angle)[:, None] * face + np.sin(angle)[:, None] * towards
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise angles (n,) in radians between unit vectors ``a`` and ``b`` (n, 3)."""
+    return np.arccos(np.clip(_dot(a, b), -1.0, 1.0))
 
 
 def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -391,8 +454,7 @@ def _planes_chunk(
     # Along each face, away from the edge: into the other plane's solid side at a convex edge,
     # out of it at a concave one.
     for face, other in ((side_a, side_b), (side_b, side_a)):
-        along = unit(np.cross(np.cross(face, other), face))
-        along *= np.where((_dot(along, other) < 0) != convex, -1.0, 1.0)[:, None]
+        along = _into_face(face, other, convex)
         facing.append(valid & (_along(offsets, along) > OFF_EDGE) & (_along(normals[near], face) > cosine))
     half = _along(offsets, edge) > 0
     normal_a, normal_b = side_a, side_b

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from core.creases import (
     ALONG_EDGE,
+    HEDGE,
     HELD_GAP,
     MAX_MOVE,
     NORMAL_REACH,
@@ -207,7 +208,9 @@ def test_a_curve_with_too_few_points_beside_it_stays():
 
 
 @pytest.mark.parametrize("convex", [True, False])
-def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_keep_the_fits(convex):
+def test_points_beside_an_edge_take_their_faces_normal_and_those_nearer_it_the_nearer_faces_turned_short_of_inward(
+    convex,
+):
     # The floor and wall, the curve on their edge; the fit's normals lean towards the other face's
     # near the edge, as a fit that rounds it does (convex or concave): by 27 degrees at the edge,
     # 10 at 0.03 from it, 2 at 0.08.
@@ -219,7 +222,8 @@ def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_kee
     fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
     points = np.vstack([floor, wall]) + rng.normal(0.0, NOISE, (16000, 3))
     curve = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, X, convex)
-    beside = (np.abs(points[:, 1]) < 0.15) & (from_edge > 0.03) & (from_edge < NORMAL_REACH - 0.01)
+    middle = np.abs(points[:, 1]) < 0.15
+    beside = middle & (from_edge > 0.03) & (from_edge < NORMAL_REACH - 0.01)
     assert normal_angles(fitted[beside], truth[beside]).mean() > 2.0
 
     result = normals_on_faces(points, fitted, [curve])
@@ -227,14 +231,47 @@ def test_points_beside_an_edge_take_their_faces_normal_and_those_too_near_it_kee
     replaced = (result != fitted).any(axis=1)
     assert replaced[beside].mean() > 0.9
     assert normal_angles(result[beside], truth[beside]).mean() < 1.0  # the refitted planes' own error, about 0.4
-    # No point is given the other face's normal.
-    assert normal_angles(result[replaced], truth[replaced]).max() < 5.0
-    # Nearly all of those too near the edge to tell their face keep the fit's normal (noise along
-    # the face carries a few clear of it), and so do all out of reach.
-    near_edge = from_edge < 0.005
-    assert near_edge.sum() > 100 and replaced[near_edge].mean() < 0.05
+    # Nearer the edge each point takes a face's normal turned HEDGE towards the other's (the faces
+    # are 90 degrees apart): its own face's, or the other's where noise carried it nearer that one,
+    # and then still HEDGE short of pointing inward. On the whole the nearer face is the better guess.
+    near_edge = middle & (from_edge < 0.02)
+    assert near_edge.sum() > 150 and replaced[near_edge].mean() > 0.95
+    error = normal_angles(result[near_edge], truth[near_edge])
+    assert error.max() < 90.0 - HEDGE / 2
+    turned = error[replaced[near_edge]]
+    assert np.mean((turned < HEDGE + 1.5) | (turned > 90.0 - HEDGE - 1.5)) > 0.95
+    assert error.mean() < normal_angles(fitted[near_edge], truth[near_edge]).mean() - 5.0
+    # No point out of reach is touched.
     out_of_reach = np.linalg.norm(points[:, None] - curve.points[None], axis=2).min(axis=1) > NORMAL_REACH
     assert out_of_reach.sum() > 1000 and not replaced[out_of_reach].any()
+
+
+def test_a_point_beside_an_obtuse_edge_is_told_its_face_by_where_the_faces_end_not_by_their_planes():
+    # Two faces meeting at 135 degrees along the y axis (normals 45 degrees apart): the floor z = 0
+    # running to -x, and a face running down from the edge at 45 degrees. The floor's plane runs on
+    # past the edge right beside the sloping face, so a point of the sloping face near the edge is
+    # near the floor's plane as well; the floor itself ends at the edge.
+    rng = np.random.default_rng(4)
+    down = (X - Z) / np.sqrt(2)
+    slope_normal = (X + Z) / np.sqrt(2)
+    floor = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([-X, Y]), 8000)
+    slope = face_points(rng, np.array([0.0, -0.45, 0.0]), np.array([down, Y]), 8000)
+    truth = np.vstack([np.tile(Z, (8000, 1)), np.tile(slope_normal, (8000, 1))])
+    from_edge = np.concatenate([np.abs(floor[:, 0]), slope @ down])
+    points = np.vstack([floor, slope]) + rng.normal(0.0, NOISE, (16000, 3))
+    fitted = truth + 0.3 * np.exp(-from_edge / 0.03)[:, None] * truth[::-1]  # rounded towards the other face
+    fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
+    curve = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, slope_normal, True)
+
+    result = normals_on_faces(points, fitted, [curve])
+
+    # From 0.004 to 0.012 off the edge along its face, nine in ten points take their own face's
+    # normal (the nearer plane: seven in ten); the rest the other's, 45 degrees off, never inward.
+    band = (np.abs(points[:, 1]) < 0.18) & (from_edge > 0.004) & (from_edge < 0.012)
+    error = normal_angles(result[band], truth[band])
+    assert band.sum() > 60
+    assert np.mean(error < 2.0) > 0.85
+    assert error.max() < 47.0
 
 
 def test_points_nearer_a_curve_whose_refit_failed_than_one_where_it_held_keep_the_fits_normals():
@@ -265,7 +302,9 @@ def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
     # Most refits are refused (the wall's points either side along the rim fit planes turned from
     # each other); where one holds, its wall plane is turned along the rim by up to 6 degrees, and
     # a point whose normal leans along the edge by more than ALONG_EDGE keeps it. Given exact
-    # normals, none is made worse by more than that and the refitted planes' noise.
+    # normals, none clear of the rim is made worse by more than that and the refitted planes'
+    # noise; nearer the rim, where noise may have carried a point nearer the other face, none is
+    # given a normal that points inward.
     grid = sample_grid(cylinder, 64, LOW, HIGH)
     mesh = dual_contour(grid, cylinder, lambda x: (cylinder(x), gradient(cylinder, x)))
     curves = edge_curves(mesh, 30.0, 0.02, 0.005)
@@ -276,7 +315,10 @@ def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
     result = normals_on_faces(points, normals, curves)
 
     error = normal_angles(result, normals)
-    assert error.max() < ALONG_EDGE + 1.0
+    to_rim = np.hypot(np.hypot(points[:, 0], points[:, 1]) - 0.25, np.abs(points[:, 2]) - 0.2)
+    clear = to_rim > 0.03
+    assert error[clear].max() < ALONG_EDGE + 1.0
+    assert error.max() < 90.0 - HEDGE / 2
     assert np.median(error[error > 0]) < 1.0
 
 
