@@ -105,6 +105,7 @@ ALONG_EDGE = 2.0
 # 1.97°, box_hole 3.29° -> 2.73° (docs/benchmarks.md).
 HEDGE = 4.0
 HEDGE_LIMIT = 95.0
+SQUARE = 10.0
 
 
 def onto_refitted(
@@ -211,7 +212,9 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     unsure = near & ~clear & between & (apart < np.radians(HEDGE_LIMIT))
     result = normals.copy()
     result[found[clear]] = face[clear]
-    turn = np.maximum(apart[unsure] - np.radians(90.0 - HEDGE), 0.0)
+    # A refitted plane may be a few degrees off: an edge within SQUARE of a right angle is taken as one.
+    square = apart[unsure] > np.radians(90.0 - SQUARE)
+    turn = np.where(square, np.maximum(apart[unsure], np.pi / 2) - np.radians(90.0 - HEDGE), 0.0)
     result[found[unsure]] = _turned(face[unsure], other[unsure], turn)
     return result
 
