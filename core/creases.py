@@ -96,13 +96,15 @@ MAX_TURN = 30.0  # degrees: the most a point's normal turns from the fit's to ta
 ALONG_EDGE = 2.0
 # A point nearer the edge than that, but within CLEAR of a face, takes the nearer face's normal all
 # the same: a wrong face costs the angle between the faces' normals, the fit's rounded normal about
-# half of it at every point, and the nearer face is the likelier. Where those normals are less than
-# HEDGE short of 90 degrees apart, the point's is turned towards the other's until they are HEDGE
-# short, so that a wrong face does not point inward (at 1 degree 4 points of l_bracket's 16,384
-# did, at 2 none of five shapes'; 4 leaves room for planes refitted to noisier points). At an acute
-# edge (normals more than HEDGE_LIMIT apart) that turn costs more than the fit's rounding: the
-# point keeps ∇f. On seed-0 fits, mean normal error: l_bracket 5.05° -> 4.13°, cube 2.27° ->
-# 1.97°, box_hole 3.29° -> 2.73° (docs/benchmarks.md).
+# half of it at every point, and the nearer face is the likelier. Where those normals are about
+# square (within SQUARE degrees of 90 apart, or more: a refitted plane may be a few degrees off),
+# the point's is turned towards the other's until it is HEDGE degrees short of square with it, so
+# that a wrong face does not point inward (at 1 degree 4 points of l_bracket's 16,384 did, at 2
+# none of five shapes'; 4 leaves room for planes refitted to noisier points; without SQUARE one of
+# slotted_plate's, between planes refitted 86 degrees apart). At an acute edge (normals more than
+# HEDGE_LIMIT apart) that turn costs more than the fit's rounding: the point keeps ∇f. On seed-0
+# fits, mean normal error: l_bracket 5.05° -> 4.15°, cube 2.27° -> 1.98°, box_hole 3.29° -> 2.74°
+# (docs/benchmarks.md).
 HEDGE = 4.0
 HEDGE_LIMIT = 95.0
 SQUARE = 10.0
@@ -212,7 +214,6 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     unsure = near & ~clear & between & (apart < np.radians(HEDGE_LIMIT))
     result = normals.copy()
     result[found[clear]] = face[clear]
-    # A refitted plane may be a few degrees off: an edge within SQUARE of a right angle is taken as one.
     square = apart[unsure] > np.radians(90.0 - SQUARE)
     turn = np.where(square, np.maximum(apart[unsure], np.pi / 2) - np.radians(90.0 - HEDGE), 0.0)
     result[found[unsure]] = _turned(face[unsure], other[unsure], turn)
