@@ -31,7 +31,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from core.curves import Curve
-from core.features import face_normals, unit
+from core.features import angles, face_normals, unit
 from core.intersections import uncrossed
 from core.sampling import subsample_rows
 from core.trees import kd_tree
@@ -208,15 +208,16 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     edge = unit(np.cross(planes.normal_a[sample], planes.normal_b[sample]))
     near = to_face < CLEAR * noise
     near &= ~on_planes | (np.abs(_dot(fitted, edge)) < np.sin(np.radians(ALONG_EDGE)))
-    clear = near & (to_other - to_face > CLEAR * noise) & (_dot(face, fitted) > np.cos(np.radians(MAX_TURN)))
-    apart = _angle(face, other)
-    between = _angle(fitted, face) + _angle(fitted, other) < apart + np.radians(MAX_TURN)
-    unsure = near & ~clear & between & (apart < np.radians(HEDGE_LIMIT))
+    off_face = angles(fitted, face)
+    clear = near & (to_other - to_face > CLEAR * noise) & (off_face < MAX_TURN)
+    apart = angles(face, other)
+    between = off_face + angles(fitted, other) < apart + MAX_TURN
+    unsure = near & ~clear & between & (apart < HEDGE_LIMIT)
     result = normals.copy()
     result[found[clear]] = face[clear]
-    square = apart[unsure] > np.radians(90.0 - SQUARE)
-    turn = np.where(square, np.maximum(apart[unsure], np.pi / 2) - np.radians(90.0 - HEDGE), 0.0)
-    result[found[unsure]] = _turned(face[unsure], other[unsure], turn)
+    square = apart[unsure] > 90.0 - SQUARE
+    turn = np.where(square, np.maximum(apart[unsure], 90.0) - (90.0 - HEDGE), 0.0)
+    result[found[unsure]] = _turned(face[unsure], other[unsure], np.radians(turn))
     return result
 
 
@@ -235,13 +236,7 @@ def _face_of_planes(
         across = _dot(offsets, normal) - offset
         into = _dot(from_line, _into_face(normal, other, convex))
         distances.append(np.where(into >= 0, np.abs(across), np.hypot(across, into)))
-    nearer_a = (distances[0] < distances[1])[:, None]
-    return (
-        np.where(nearer_a, normal_a, normal_b),
-        np.where(nearer_a, normal_b, normal_a),
-        np.minimum(*distances),
-        np.maximum(*distances),
-    )
+    return _nearer_first(normal_a, distances[0], normal_b, distances[1])
 
 
 def _into_face(face: np.ndarray, other: np.ndarray, convex: np.ndarray) -> np.ndarray:
@@ -262,13 +257,21 @@ def _face_of_rims(
     depth, beyond, outward = _about_rim(points, rims, rim)
     to_flat = np.hypot(depth, np.minimum(beyond, 0.0))
     to_wall = np.hypot(beyond, np.minimum(depth, 0.0))
-    wall = rims.facing[rim][:, None] * outward
-    nearer_flat = (to_flat < to_wall)[:, None]
+    return _nearer_first(rims.flat[rim], to_flat, rims.facing[rim][:, None] * outward, to_wall)
+
+
+def _nearer_first(
+    normal_a: np.ndarray, to_a: np.ndarray, normal_b: np.ndarray, to_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Of two faces per point, unit normals ``normal_a`` and ``normal_b`` (n, 3) at distances
+    ``to_a`` and ``to_b`` (n,): the nearer face's normal and the other's (n, 3), and the distances
+    (n,) to the nearer and to the other."""
+    nearer_a = (to_a < to_b)[:, None]
     return (
-        np.where(nearer_flat, rims.flat[rim], wall),
-        np.where(nearer_flat, wall, rims.flat[rim]),
-        np.minimum(to_flat, to_wall),
-        np.maximum(to_flat, to_wall),
+        np.where(nearer_a, normal_a, normal_b),
+        np.where(nearer_a, normal_b, normal_a),
+        np.minimum(to_a, to_b),
+        np.maximum(to_a, to_b),
     )
 
 
@@ -277,11 +280,6 @@ def _turned(face: np.ndarray, other: np.ndarray, angle: np.ndarray) -> np.ndarra
     their plane."""
     towards = unit(other - _dot(face, other)[:, None] * face)
     return np.cos(angle)[:, None] * face + np.sin(angle)[:, None] * towards
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise angles (n,) in radians between unit vectors ``a`` and ``b`` (n, 3)."""
-    return np.arccos(np.clip(_dot(a, b), -1.0, 1.0))
 
 
 def _crease_sides(mesh: trimesh.Trimesh, angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
