@@ -10,10 +10,12 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from core.creases import (
+    ACROSS_REACH,
     ALONG_EDGE,
     HEDGE,
     HELD_GAP,
     MAX_MOVE,
+    MAX_RADIUS,
     NORMAL_REACH,
     _circle,
     _crease_sides,
@@ -320,6 +322,61 @@ def test_points_beside_a_curved_faces_rim_keep_the_fits_normals():
     assert error[clear].max() < ALONG_EDGE + 1.0
     assert error.max() < 90.0 - HEDGE / 2
     assert np.median(error[error > 0]) < 1.0
+
+
+def disc_rim(count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, Curve]:
+    """A sector (1 radian) of a disc of radius 0.5 about (3, 0, 0), before noise: ``count`` points
+    on its top z = 0 (outward +z) beyond radius 0.2 and as many on its wall down to z = -0.3
+    (outward along the radius); their true normals (2 count, 3), their distances from the rim along
+    their face (2 count,), and the rim's curve (convex), sampled every 0.005."""
+    centre, radius = np.array([3.0, 0.0, 0.0]), 0.5
+    top_angle, wall_angle = rng.uniform(-0.5, 0.5, count), rng.uniform(-0.5, 0.5, count)
+    top_radius = np.sqrt(rng.uniform(0.2**2, radius**2, count))
+    depth = rng.uniform(0.0, 0.3, count)
+    top = centre + np.stack([top_radius * np.cos(top_angle), top_radius * np.sin(top_angle), np.zeros(count)], axis=1)
+    outward = np.stack([np.cos(wall_angle), np.sin(wall_angle), np.zeros(count)], axis=1)
+    wall = centre + radius * outward - depth[:, None] * Z
+    truth = np.vstack([np.tile(Z, (count, 1)), outward])
+    from_rim = np.concatenate([radius - top_radius, depth])
+    along = np.arange(-0.5, 0.5, 0.005 / radius)
+    rim_outward = np.stack([np.cos(along), np.sin(along), np.zeros(len(along))], axis=1)
+    curve = Curve(centre + radius * rim_outward, np.tile(Z, (len(along), 1)), rim_outward, 90.0, True)
+    return np.vstack([top, wall]), truth, from_rim, curve
+
+
+def test_points_beside_a_rim_too_wide_to_refit_take_their_faces_normal_read_across_it():
+    # A disc's rim of radius 0.5 (wider than MAX_RADIUS: no circle is refitted; its wall curves
+    # along the rim: no plane is) beside the convex edge of the tests above, whose refit holds and
+    # gives the cloud's noise width. The fit's normals lean towards the other face's near both
+    # edges, as a fit that rounds them does: halfway (45 degrees) at the edge, 8 at 0.03 from it.
+    floor, wall, rng = floor_and_wall(5, True)
+    disc, disc_truth, disc_from_rim, rim = disc_rim(6000, rng)
+    assert np.linalg.norm(rim.points[0] - rim.points[-1]) > 0.4 and 0.5 > MAX_RADIUS
+    truth = np.vstack([np.tile(Z, (8000, 1)), np.tile(X, (8000, 1)), disc_truth])
+    from_edge = np.concatenate([np.abs(floor[:, 0]), np.abs(wall[:, 2]), disc_from_rim])
+    other = np.vstack([np.tile(X, (8000, 1)), np.tile(Z, (8000, 1)), disc_truth[6000:], np.tile(Z, (6000, 1))])
+    fitted = truth + np.exp(-from_edge / 0.015)[:, None] * other
+    fitted /= np.linalg.norm(fitted, axis=1, keepdims=True)
+    points = np.vstack([floor, wall, disc]) + rng.normal(0.0, NOISE, (len(truth), 3))
+    edge = straight_curve(np.array([0.0, -0.2, 0.0]), Y, Z, X, True)
+
+    result = normals_on_faces(points, fitted, [edge, rim])
+
+    on_disc = np.arange(len(points)) >= 16000
+    middle = on_disc & (np.abs(np.arctan2(points[:, 1], points[:, 0] - 3.0)) < 0.35)
+    # Off the rim along their face, most take their face's normal as the fit has it 0.04 across,
+    # past most of its rounding (within 3 degrees; turned HEDGE more where within CLEAR noise
+    # widths of the other face): half the fit's error or less, where it leaned 18 degrees.
+    beside = middle & (from_edge > 0.01) & (from_edge < ACROSS_REACH - 0.005)
+    error, before = normal_angles(result[beside], truth[beside]), normal_angles(fitted[beside], truth[beside])
+    assert beside.sum() > 100 and before.mean() > 15.0
+    assert (result[beside] != fitted[beside]).any(axis=1).mean() > 0.8
+    assert error.mean() < before.mean() / 2
+    # None points inward, nearer the rim either (its nearer face turned HEDGE towards the other).
+    assert normal_angles(result[on_disc], truth[on_disc]).max() < 90.0 - HEDGE / 2
+    # Out of every curve's reach, none moves.
+    far = on_disc & (from_edge > NORMAL_REACH + 0.02)
+    assert far.sum() > 1000 and (result[far] == fitted[far]).all()
 
 
 def test_without_curves_or_points_to_refit_the_normals_are_the_fits():
