@@ -121,14 +121,20 @@ SQUARE = 10.0
 # read. Only at edges whose faces are MIN_APART degrees apart or more: at a shallower edge the fit
 # rounds less, and a face curved across the edge reads as far off as the rounding (the flats of a
 # shaft of radius 0.12: keyed_shaft's mean error rose 0.24°; a rounded block's fillets, 0.08°).
-# Seed-0 fits, mean normal error: flange 7.51° -> 6.90°, idler_riser 8.45° -> 8.09°
-# (docs/benchmarks.md).
+# And only where the reads are as far apart as the mesh's faces, within AGREE degrees (at seed 1
+# featuretype's mesh faces were 50° apart and its reads 82°, one of them off its face). A read is
+# a few degrees off where a refitted plane is a fraction of one (5° at a point of l_bracket's seed
+# 1 that then pointed inward), so a point not CLEAR of the other face is turned READ_HEDGE short
+# of square, not HEDGE. Seed-0 fits, mean normal error: flange 7.51° -> 7.02°, idler_riser 8.45°
+# -> 8.14° (docs/benchmarks.md).
 ACROSS_REACH = 0.03
 ACROSS = 0.04
 READ_REACH = 0.02
 MIN_READ = 3
 SIDE_MARGIN = 1.0
 MIN_APART = 60.0
+AGREE = 15.0
+READ_HEDGE = 6.0
 
 
 def onto_refitted(
@@ -292,8 +298,9 @@ def _faces_across(
     use = to_other - to_face > SIDE_MARGIN * noise
     use &= (off_face < off_other) & (angles(fitted, mesh_face) + off_other < crease + MAX_TURN)
     use &= (crease >= MIN_APART) & (crease < HEDGE_LIMIT)
+    use &= np.abs(angles(read_a, read_b) - angles(side_a, side_b)) < AGREE
     sure = (to_other - to_face > CLEAR * noise)[:, None]
-    return np.where(sure, face, _hedged(face, other, angles(face, other))), use
+    return np.where(sure, face, _hedged(face, other, angles(face, other), READ_HEDGE)), use
 
 
 def _read_across(
@@ -315,10 +322,10 @@ def _read_across(
     return unit(total), enough
 
 
-def _hedged(face: np.ndarray, other: np.ndarray, apart: np.ndarray) -> np.ndarray:
-    """Unit normals ``face`` (n, 3) turned towards ``other`` (n, 3) until ``HEDGE`` degrees short
+def _hedged(face: np.ndarray, other: np.ndarray, apart: np.ndarray, hedge: float = HEDGE) -> np.ndarray:
+    """Unit normals ``face`` (n, 3) turned towards ``other`` (n, 3) until ``hedge`` degrees short
     of square with it where they are ``apart`` (n,) degrees, within ``SQUARE`` of square or more."""
-    turn = np.where(apart > 90.0 - SQUARE, np.maximum(apart, 90.0) - (90.0 - HEDGE), 0.0)
+    turn = np.where(apart > 90.0 - SQUARE, np.maximum(apart, 90.0) - (90.0 - hedge), 0.0)
     return _turned(face, other, np.radians(turn))
 
 

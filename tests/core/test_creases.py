@@ -17,6 +17,7 @@ from core.creases import (
     MAX_MOVE,
     MAX_RADIUS,
     NORMAL_REACH,
+    READ_HEDGE,
     _circle,
     _crease_sides,
     normals_on_faces,
@@ -365,15 +366,16 @@ def test_points_beside_a_rim_too_wide_to_refit_take_their_faces_normal_read_acro
     on_disc = np.arange(len(points)) >= 16000
     middle = on_disc & (np.abs(np.arctan2(points[:, 1], points[:, 0] - 3.0)) < 0.35)
     # Off the rim along their face, most take their face's normal as the fit has it 0.04 across,
-    # past most of its rounding (within 3 degrees; turned HEDGE more where within CLEAR noise
-    # widths of the other face): half the fit's error or less, where it leaned 18 degrees.
+    # past most of its rounding (within 3 degrees; turned to READ_HEDGE short of square with the
+    # other face's where within CLEAR noise widths of it): half the fit's error or less, where it
+    # leaned 18 degrees.
     beside = middle & (from_edge > 0.01) & (from_edge < ACROSS_REACH - 0.005)
     error, before = normal_angles(result[beside], truth[beside]), normal_angles(fitted[beside], truth[beside])
     assert beside.sum() > 100 and before.mean() > 15.0
     assert (result[beside] != fitted[beside]).any(axis=1).mean() > 0.8
     assert error.mean() < before.mean() / 2
-    # None points inward, nearer the rim either (its nearer face turned HEDGE towards the other).
-    assert normal_angles(result[on_disc], truth[on_disc]).max() < 90.0 - HEDGE / 2
+    # None points inward, nearer the rim either (there its nearer face's is turned as far).
+    assert normal_angles(result[on_disc], truth[on_disc]).max() < 90.0 - READ_HEDGE / 2
     # Out of every curve's reach, none moves.
     far = on_disc & (from_edge > NORMAL_REACH + 0.02)
     assert far.sum() > 1000 and (result[far] == fitted[far]).all()
