@@ -257,7 +257,7 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     beside = beside[~holds[nearest[beside]]]
     sample = nearest[beside]
     bare, which = np.unique(sample, return_inverse=True)
-    (read_a, held_a), (read_b, held_b) = (
+    (read_a, enough_a), (read_b, enough_b) = (
         _read_across(at[bare], this[bare], that[bare], convex[bare], tree, normals[rows])
         for this, that in ((side_a, side_b), (side_b, side_a))
     )
@@ -269,7 +269,7 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
         convex[sample],
         noise,
     )
-    read &= held_a[which] & held_b[which]
+    read &= enough_a[which] & enough_b[which]
     result[beside[read]] = across[read]
     return result
 
@@ -287,7 +287,7 @@ def _faces_across(
     each as the mesh has them at the crease and ``reads`` (n, 3) each as read across them
     (``_read_across``), convex or not (n,), in a cloud of ``noise`` width: the point's face's
     normal as read (n, 3), turned as ``_hedged`` asks where the point is not ``CLEAR`` of the other
-    face, and whether the rules of ``ACROSS_REACH`` give it (n,)."""
+    face, and whether the rules given with ``ACROSS_REACH`` let it take that (n,)."""
     (side_a, side_b), (read_a, read_b) = sides, reads
     no_offset = np.zeros(len(offsets))
     mesh_face, _, to_face, to_other = _face_of_planes(offsets, (side_a, no_offset), (side_b, no_offset), convex)
