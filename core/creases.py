@@ -219,7 +219,8 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     held = np.flatnonzero(holds)
     to_held, nearest = kd_tree(at[held]).query(points, distance_upper_bound=NORMAL_REACH, workers=workers)
     found = np.flatnonzero(nearest < len(held))
-    to_any, _ = kd_tree(at).query(points[found], workers=workers)
+    samples = kd_tree(at)
+    to_any, _ = samples.query(points[found], workers=workers)
     found = found[to_held[found] - to_any < HELD_GAP]
     sample = held[nearest[found]]
     face, other = np.zeros((len(found), 3)), np.zeros((len(found), 3))
@@ -252,10 +253,10 @@ def normals_on_faces(points: np.ndarray, normals: np.ndarray, curves: list[Curve
     result[found[unsure]] = _hedged(face[unsure], other[unsure], apart[unsure])
     done = np.zeros(len(points), dtype=bool)
     done[found[clear | unsure]] = True
-    _, nearest = kd_tree(at).query(points, distance_upper_bound=ACROSS_REACH, workers=workers)
-    beside = np.flatnonzero(~done & (nearest < len(at)))
-    beside = beside[~holds[nearest[beside]]]
-    sample = nearest[beside]
+    _, closest = samples.query(points, distance_upper_bound=ACROSS_REACH, workers=workers)
+    beside = np.flatnonzero(~done & (closest < len(at)))
+    beside = beside[~holds[closest[beside]]]
+    sample = closest[beside]
     bare, which = np.unique(sample, return_inverse=True)
     (read_a, enough_a), (read_b, enough_b) = (
         _read_across(at[bare], this[bare], that[bare], convex[bare], tree, normals[rows])
