@@ -19,13 +19,14 @@ from core.creases import normals_on_faces, onto_refitted
 from core.curves import Curve, distance_to_curves, edge_curves, without_isolated
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
-from core.fit import fit
+from core.fit import fit, fit_rows
 from core.frame import Frame
 from core.mesh_formats import convert_obj, mesh_file
 from core.network import ImplicitNetwork
 from core.outputs import FIT_OUTPUTS, MESH_FORMATS, OUTPUT_NAMES, PREVIEW_POINTS, write_atomically
 from core.params import FitParams
 from core.progress import Progress, ProgressCallback, Stage
+from core.strays import strays
 
 # Edge curves (unit frame): shorter chains of creased mesh edges are noise, not edges; samples
 # every CURVE_SPACING.
@@ -157,9 +158,18 @@ def fit_cloud(
     progress: ProgressCallback | None = None,
     should_cancel: CancelCheck | None = None,
 ) -> ImplicitNetwork:
-    """``core.fit.fit`` of ``points`` (N, 3, input coordinates) in their unit frame, the frame in
-    which ``extract_outputs`` reads the network."""
-    return fit(Frame.of(points).to_unit(points), params, progress=progress, should_cancel=should_cancel)
+    """``core.fit.fit`` of ``points`` (N, 3, input coordinates), less their strays, in their unit
+    frame (``fitted_rows``), the frame in which ``extract_outputs`` reads the network."""
+    fitted = points[fitted_rows(points, params)]
+    return fit(Frame.of(fitted).to_unit(fitted), params, progress=progress, should_cancel=should_cancel)
+
+
+def fitted_rows(points: np.ndarray, params: FitParams) -> np.ndarray:
+    """The rows of ``points`` (N, 3) a fit is given: those ``core.fit.fit_rows`` takes, less the strays
+    among them (``core.strays``). Their bounding box is the unit frame, so that a stray neither
+    shrinks the shape in it nor widens the grid the mesh is extracted on."""
+    rows = fit_rows(len(points), params.seed)
+    return rows[~strays(points[rows], torch.get_num_threads())]
 
 
 def extract_outputs(
@@ -172,12 +182,13 @@ def extract_outputs(
     """The mesh, normals and edge points of ``model``, a network fitted to ``points`` (N, 3, input
     coordinates) in their unit frame (``fit_cloud``); apart from ``reconstruct`` so that a saved fit
     can be extracted again by changed extraction code (``bench/run.py --fits``)."""
-    frame = Frame.of(points)
-    unit = frame.to_unit(points)
     started = time.perf_counter()
+    rows = fitted_rows(points, params)
+    frame = Frame.of(points[rows])
+    unit = frame.to_unit(points)
     if progress is not None:
         progress(Progress(stage=Stage.EXTRACTING, iteration=params.iterations, total=params.iterations))
-    low, high = unit.min(axis=0), unit.max(axis=0)
+    low, high = unit[rows].min(axis=0), unit[rows].max(axis=0)
     mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
     # Whether the fit read Fourier features (encoding "auto" decides in the fit), and how many.
     stats["fourier_features"] = model.features
@@ -186,8 +197,8 @@ def extract_outputs(
         normals = unit_normals(model, unit, should_cancel=should_cancel)
         curves = edge_curves(mesh, params.edge_angle, CURVE_MIN_LENGTH, CURVE_SPACING)
         curves = without_isolated(curves, CURVE_JOIN_GAP, CURVE_GROUP_LENGTH, CURVE_KEEP_DIHEDRAL)
-        mesh, curves = onto_refitted(mesh, curves, params.edge_angle, unit, normals)
-        mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit, normals)
+        mesh, curves = onto_refitted(mesh, curves, params.edge_angle, unit[rows], normals[rows])
+        mesh, corners = snap_corners(mesh, curves, CURVE_JOIN_GAP, unit[rows], normals[rows])
         curves = extend_to_corners(curves, corners, CURVE_JOIN_GAP, CURVE_SPACING)
         normals = normals_on_faces(unit, normals, curves, torch.get_num_threads())
         near = distance_to_curves(unit, curves, CURVE_SPACING, params.edge_width, torch.get_num_threads())

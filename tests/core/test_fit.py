@@ -27,7 +27,7 @@ from core.network import ImplicitNetwork
 from core.params import FitParams
 from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
-from evaluation.metrics import edge_scores, normal_errors, surface_distances
+from evaluation.metrics import distance_to_mesh, edge_scores, normal_errors, surface_distances
 from evaluation.shapes import sample_shape
 
 # The loop's tests and the quality tests fit the plain network ("never"): whether a fit restarts
@@ -794,6 +794,49 @@ def test_an_open_cube_gives_one_outward_surface_that_follows_its_points_and_clos
     samples, _ = trimesh.sample.sample_surface(mesh, 50_000, seed=0)
     far = cKDTree(shape.points[keep]).query(samples)[0] > 0.04
     assert 0.1 < far.mean() < 0.25 and samples[far, 2].min() > 0.4, (far.mean(), samples[far].min(axis=0))
+
+
+class _Stop(Exception):
+    """Raised by a spy, to stop a reconstruction once it has shown what it was given."""
+
+
+def test_a_fit_and_its_extraction_are_given_the_cloud_less_its_strays_in_their_frame(monkeypatch):
+    """Issue 9: no phantom surfaces. A scan's stray returns (one percent of the cloud, scattered
+    through the cube's box grown by 0.3 on every side) are left out of the fit, which would pass a
+    surface through each (l_bracket with such strays: 15 extra components; docs/benchmarks.md), and
+    out of the frame and the extraction's grid, which they would widen."""
+    from core import reconstruct as module
+
+    shape = sample_shape("cube", n_points=16_384, seed=0)
+    low, high = shape.points.min(axis=0), shape.points.max(axis=0)
+    scattered = np.random.default_rng(0).uniform(low - 0.3, high + 0.3, size=(len(shape.points) // 100, 3))
+    cloud = np.concatenate([shape.points, scattered])
+    far = distance_to_mesh(scattered, shape.mesh.vertices, shape.mesh.faces) > 0.1
+    given = {}
+
+    def fit(points, params, progress=None, should_cancel=None):
+        given["fit"] = points
+        raise _Stop
+
+    def extract_mesh(model, resolution, low, high, should_cancel=None, method="mc"):
+        given["grid"] = low, high
+        raise _Stop
+
+    monkeypatch.setattr(module, "fit", fit)
+    monkeypatch.setattr(module, "extract_mesh", extract_mesh)
+    with pytest.raises(_Stop):
+        module.fit_cloud(cloud, FitParams())
+    with pytest.raises(_Stop):
+        module.extract_outputs(None, cloud, FitParams())
+    rows = module.fitted_rows(cloud, FitParams())
+    # Every point of the cube, and none of the strays farther than 0.1 from it (118 of 163).
+    strays = np.arange(len(shape.points), len(cloud))
+    assert far.sum() > 100
+    assert np.isin(np.arange(len(shape.points)), rows).all() and not np.isin(strays[far], rows).any()
+    # The fit is given those points in their own frame, and the grid spans them.
+    assert np.array_equal(given["fit"], module.Frame.of(cloud[rows]).to_unit(cloud[rows]))
+    grid_low, grid_high = given["grid"]
+    assert np.array_equal(grid_low, given["fit"].min(axis=0)) and np.array_equal(grid_high, given["fit"].max(axis=0))
 
 
 def test_a_fit_with_fourier_features_gives_a_close_smooth_cube():
