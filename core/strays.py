@@ -22,7 +22,7 @@ NEIGHBOURS = 8
 # points has neighbours at distance 0), or more than FAR_RATIO times as far as the cloud's median:
 # strays far from every surface are one another's neighbours, as far apart as they are from the
 # surface (of 163 strays in l_bracket's box, the first test alone found 33, both 106; the 57 left
-# lie within 0.06 of the surface, as noise at eleven times its width would). A region sampled 36
+# lie within 0.06 of the surface, twelve noise widths). A region sampled 36
 # times more sparsely than the cloud's median would pass for strays. Of 38 clouds of
 # docs/benchmarks.md (the shapes and their variants, the twelve parts, five public models, two
 # clouds eight times as dense at one end as at the other) no point is a stray.
