@@ -19,7 +19,7 @@ from core.creases import normals_on_faces, onto_refitted
 from core.curves import Curve, distance_to_curves, edge_curves, without_isolated
 from core.errors import CancelCheck
 from core.extract import extract_mesh, normals_and_laplacian, unit_normals
-from core.fit import fit, fit_rows
+from core.fit import FIT_POINTS, fit, fit_rows
 from core.frame import Frame
 from core.mesh_formats import convert_obj, mesh_file
 from core.network import ImplicitNetwork
@@ -192,6 +192,9 @@ def extract_outputs(
     mesh, stats = extract_mesh(model, params.resolution, low, high, should_cancel, method=params.extraction)
     # Whether the fit read Fourier features (encoding "auto" decides in the fit), and how many.
     stats["fourier_features"] = model.features
+    # The points left out of the fit as strays, of those it draws (every point of a cloud up to
+    # FIT_POINTS): a user sees that some were, and how many.
+    stats["stray_points"] = min(len(points), FIT_POINTS) - len(rows)
     curves: list[Curve] = []
     if params.extraction == "sharp":
         normals = unit_normals(model, unit, should_cancel=should_cancel)

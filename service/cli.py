@@ -154,6 +154,7 @@ def _fit(args: argparse.Namespace) -> int:
         f"wrote {args.out}/{meshes} ({summary['vertices']} vertices, {summary['faces']} faces), "
         f"normals.json, edges.json ({summary['edge_points']} edge points){', preview.json' if args.preview else ''} "
         f"in {summary['timings']['fit_seconds']:.1f} s fit + {summary['timings']['extract_seconds']:.1f} s extraction"
+        + (f"; {summary['stray_points']} stray points left out of the fit" if summary.get("stray_points") else "")
     )
     return 0
 

@@ -839,6 +839,23 @@ def test_a_fit_and_its_extraction_are_given_the_cloud_less_its_strays_in_their_f
     assert np.array_equal(grid_low, given["fit"].min(axis=0)) and np.array_equal(grid_high, given["fit"].max(axis=0))
 
 
+def test_a_reconstructions_summary_says_how_many_points_were_left_out_as_strays():
+    """The user sees that points were left out: an untrained network's sphere, extracted by marching
+    cubes on a coarse grid, is enough to read the summary."""
+    from core import reconstruct as module
+
+    shape = sample_shape("cube", n_points=4096, seed=0)
+    low, high = shape.points.min(axis=0), shape.points.max(axis=0)
+    scattered = np.random.default_rng(0).uniform(low - 0.3, high + 0.3, size=(40, 3))
+    cloud = np.concatenate([shape.points, scattered])
+    params = FitParams(extraction="mc", resolution=32)
+    result = module.extract_outputs(ImplicitNetwork(64, 2, 100), cloud, params)
+    left_out = len(cloud) - len(module.fitted_rows(cloud, params))
+    assert 20 < left_out <= len(scattered) and result.summary()["stray_points"] == left_out
+    clean = module.extract_outputs(ImplicitNetwork(64, 2, 100), shape.points, params)
+    assert clean.summary()["stray_points"] == 0
+
+
 def test_a_fit_with_fourier_features_gives_a_close_smooth_cube():
     """The option's whole path (training through the encoding, compiled kernels, extraction) on the
     small cube: as close as without it, its faces a little wavier."""

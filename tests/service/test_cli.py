@@ -214,6 +214,26 @@ def test_format_writes_the_mesh_in_each_format_asked_with_the_same_counts(tmp_pa
         ), fmt
 
 
+def test_a_cloud_with_stray_points_says_how_many_were_left_out_of_the_fit(tmp_path, monkeypatch, capsys):
+    """In-process, on a tiny fit: the example cloud with 30 points scattered round it (core.strays)."""
+    from core import network
+    from service import cli
+
+    monkeypatch.setenv("EDGERECON_COMPILE", "0")
+    monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
+    points = read_points(EXAMPLE)
+    low, high = points.min(axis=0), points.max(axis=0)
+    size = (high - low).max()
+    scattered = np.random.default_rng(0).uniform(low - 0.3 * size, high + 0.3 * size, size=(30, 3))
+    write_ply(tmp_path / "strays.ply", np.concatenate([points, scattered]))
+    tiny = ["--iterations", "2", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
+    assert cli.main(["fit", str(tmp_path / "strays.ply"), "--out", str(tmp_path / "out"), *tiny]) == 0
+    out = capsys.readouterr().out
+    assert "stray points left out of the fit" in out, out
+    assert cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "clean"), *tiny]) == 0
+    assert "left out of the fit" not in capsys.readouterr().out
+
+
 def test_an_unknown_format_is_refused_before_anything_runs(tmp_path):
     result = run("fit", EXAMPLE, "--out", tmp_path / "out", "--format", "obj,fbx", cwd=tmp_path)
     assert result.returncode == 2 and "Traceback" not in result.stderr
