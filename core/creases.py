@@ -291,9 +291,9 @@ def _faces_across(
     face, and whether the rules given with ``ACROSS_REACH`` let it take that (n,)."""
     (side_a, side_b), (read_a, read_b) = sides, reads
     no_offset = np.zeros(len(offsets))
-    mesh_face, _, to_face, to_other = _face_of_planes(offsets, (side_a, no_offset), (side_b, no_offset), convex)
-    on_a = (_dot(mesh_face, side_a) > _dot(mesh_face, side_b))[:, None]
-    face, other = np.where(on_a, read_a, read_b), np.where(on_a, read_b, read_a)
+    to_a, to_b = _to_faces(offsets, (side_a, no_offset), (side_b, no_offset), convex)
+    mesh_face, _, to_face, to_other = _nearer_first(side_a, to_a, side_b, to_b)
+    face, other, _, _ = _nearer_first(read_a, to_a, read_b, to_b)
     crease = angles(mesh_face, other)
     off_face, off_other = angles(fitted, face), angles(fitted, other)
     use = to_other - to_face > SIDE_MARGIN * noise
@@ -339,8 +339,20 @@ def _face_of_planes(
     """For points at ``offsets`` (n, 3) from their edge samples, on edges ``convex`` (n,) or not
     between two faces' planes, unit normals (n, 3) and offsets (n,) as n·offset = offset, each:
     the unit normals (n, 3) of the nearer face and of the other, and their distances (n,) to the
-    nearer and to the other. A face is the half of its plane on its side of the line where the
-    planes meet."""
+    nearer and to the other (``_to_faces``)."""
+    to_a, to_b = _to_faces(offsets, plane_a, plane_b, convex)
+    return _nearer_first(plane_a[0], to_a, plane_b[0], to_b)
+
+
+def _to_faces(
+    offsets: np.ndarray,
+    plane_a: tuple[np.ndarray, np.ndarray],
+    plane_b: tuple[np.ndarray, np.ndarray],
+    convex: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distances (n,) of points at ``offsets`` (n, 3) to face a and to face b, as in
+    ``_face_of_planes``. A face is the half of its plane on its side of the line where the planes
+    meet."""
     (normal_a, offset_a), (normal_b, offset_b) = plane_a, plane_b
     from_line = offsets - _onto_line(normal_a, offset_a, normal_b, offset_b)
     distances = []
@@ -348,7 +360,7 @@ def _face_of_planes(
         across = _dot(offsets, normal) - offset
         into = _dot(from_line, _into_face(normal, other, convex))
         distances.append(np.where(into >= 0, np.abs(across), np.hypot(across, into)))
-    return _nearer_first(normal_a, distances[0], normal_b, distances[1])
+    return distances[0], distances[1]
 
 
 def _into_face(face: np.ndarray, other: np.ndarray, convex: np.ndarray) -> np.ndarray:
