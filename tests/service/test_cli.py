@@ -249,7 +249,7 @@ def test_a_fit_that_starts_again_with_features_says_so_and_writes_its_outputs(tm
     monkeypatch.setenv("EDGERECON_COMPILE", "0")
     monkeypatch.setattr(network._kernels, "compiled", network._kernels.compiled)
     monkeypatch.setattr(fit, "CHECKED_ITERATIONS", 4)
-    monkeypatch.setattr(fit, "residual_tail", lambda model, points: (float("inf"), float("inf")))
+    monkeypatch.setattr(fit, "residual_tail", lambda model, points, neighbours: (float("inf"), float("inf")))
     tiny = ["--iterations", "4", "--resolution", "32", "--width", "16", "--depth", "1", "--batch-points", "64"]
     code = cli.main(["fit", str(EXAMPLE), "--out", str(tmp_path / "out"), "--features", "4", *tiny])
     err = capsys.readouterr().err
