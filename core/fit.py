@@ -361,10 +361,10 @@ def residual_tail(model: Callable[[Tensor], Tensor], points: Tensor, neighbours:
     taken no larger than the ``SUPPORT_RANK``-th largest of its neighbours' (``neighbours``, (n, k)
     rows of ``points``), so that points missed alone (strays) do not count.
 
-    Where f follows the points to their noise, this is the noise's own ratio (4.88 for noise that
-    is normal along the surface); points that f does not reach (a pocket it caps, a rib it
-    rounds off) lengthen the tail. The ratio is the noise's scale-free: a cloud twice as noisy
-    gives the same one.
+    Where f follows the points to their noise, this is the noise's own ratio (about 2.6 for noise
+    that is normal along the surface, 4.88 with each residual counted alone); points that f does
+    not reach together (a pocket it caps, a rib it rounds off) lengthen the tail. The ratio is the
+    noise's scale-free: a cloud twice as noisy gives the same one.
     """
     f = model(points)
     residual = (f - f.median()).abs()

@@ -72,9 +72,9 @@ def _strays_among(points: np.ndarray, workers: int) -> np.ndarray:
 
 
 def _small_groups(points: np.ndarray, workers: int) -> np.ndarray:
-    """(n,) bool: which of ``points`` (n, 3) lie in a group of less than ``GROUP_SHARE`` of them
-    that no point links to any other (each point linked to its ``NEIGHBOURS`` nearest). Repeated
-    points are taken as one, so that a point repeated many times is not a group of its own."""
+    """(n,) bool: which of ``points`` (n, 3) lie in a linked group of less than ``GROUP_SHARE`` of
+    them, each point linked to its ``NEIGHBOURS`` nearest and they to it. Repeated points are taken
+    as one, so that a point repeated many times is not a group of its own."""
     unique, inverse = np.unique(points, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
     if len(unique) <= NEIGHBOURS + 1:
