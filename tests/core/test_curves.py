@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from core.curves import Curve, without_isolated
+from tests.helpers import flooded
 
 GAP, LENGTH, KEEP_DIHEDRAL = 0.05, 0.06, 120.0
 
@@ -84,16 +85,7 @@ def test_without_isolated_matches_a_brute_force_grouping(seed):
         [j for j in range(len(curves)) if min(np.linalg.norm(p - q) for p in ends[i] for q in ends[j]) <= GAP]
         for i in range(len(curves))
     ]
-    group = [-1] * len(curves)
-    for i in range(len(curves)):
-        if group[i] >= 0:
-            continue
-        group[i], queue = i, [i]
-        while queue:
-            for j in linked[queue.pop()]:
-                if group[j] < 0:
-                    group[j] = i
-                    queue.append(j)
+    group = flooded(linked)
     total = {g: sum(c.length for c, h in zip(curves, group) if h == g) for g in set(group)}
     expected = [i for i in range(len(curves)) if total[group[i]] >= LENGTH or curves[i].dihedral < KEEP_DIHEDRAL]
     assert 0 < len(expected) < len(curves)  # the draw has both kinds

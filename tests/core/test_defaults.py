@@ -87,6 +87,15 @@ def test_the_shared_featuretypes_capped_bores_are_read_as_misses_halfway(shared_
     check is read and the fit stopped there."""
     from core import fit as fit_module
     from core.ply import read_points
+
+    reach, missed = _read_halfway(read_points(shared_data / "featuretype" / "points.ply"), monkeypatch)
+    assert missed and reach > fit_module.NOISE_TAIL_LIMIT, reach
+
+
+def _read_halfway(points: np.ndarray, monkeypatch) -> tuple[float, bool]:
+    """The default fit's check halfway through a fit of ``points``, the fit stopped there: how many
+    noise widths its residuals reach, and whether that is a miss (a restart)."""
+    from core import fit as fit_module
     from core.reconstruct import fit_cloud
 
     readings: list[tuple[float, bool]] = []
@@ -97,13 +106,12 @@ def test_the_shared_featuretypes_capped_bores_are_read_as_misses_halfway(shared_
         raise _Halfway
 
     monkeypatch.setattr(fit_module._Check, "misses", misses)
-    points = read_points(shared_data / "featuretype" / "points.ply")
     try:
         fit_cloud(points, FitParams())
     except _Halfway:
         pass
-    assert len(readings) == 1 and readings[0][1], readings
-    assert readings[0][0] > fit_module.NOISE_TAIL_LIMIT, readings
+    assert len(readings) == 1, readings
+    return readings[0]
 
 
 def test_the_shared_box_hole_with_strays_near_its_faces_is_not_read_as_missed_halfway(shared_data, monkeypatch):
@@ -112,26 +120,12 @@ def test_the_shared_box_hole_with_strays_near_its_faces_is_not_read_as_missed_ha
     not, and the fit passes them by. Halfway, counted one by one, they reached 12.6 noise widths
     and restarted the fit with features (2.4 times as long); counted only as far as their
     neighbours' residuals (``SUPPORT_RANK``), they read as the noise does."""
-    from core import fit as fit_module
     from core.ply import read_points
-    from core.reconstruct import fit_cloud
 
-    readings: list[tuple[float, bool]] = []
-    real_misses = fit_module._Check.misses
-
-    def misses(check: fit_module._Check, tail: float, reach: float) -> bool:
-        readings.append((reach / check.noise, real_misses(check, tail, reach)))
-        raise _Halfway
-
-    monkeypatch.setattr(fit_module._Check, "misses", misses)
     points = read_points(shared_data / "box_hole" / "points.ply")
     rng = np.random.default_rng(7)
     low, high = points.min(axis=0), points.max(axis=0)
     grow = 0.1 * (high - low).max()
     strays = rng.uniform(low - grow, high + grow, size=(len(points) // 100, 3))
-    try:
-        fit_cloud(np.vstack([points, strays]), FitParams())
-    except _Halfway:
-        pass
-    assert len(readings) == 1 and not readings[0][1], readings
-    assert readings[0][0] < 4.0, readings  # measured 2.60 noise widths
+    reach, missed = _read_halfway(np.vstack([points, strays]), monkeypatch)
+    assert not missed and reach < 4.0, reach  # measured 2.60 noise widths

@@ -10,6 +10,7 @@ from core import strays as module
 from core.strays import strays
 from evaluation.metrics import distance_to_mesh
 from evaluation.shapes import sample_shape
+from tests.helpers import flooded
 
 
 def by_hand(points: np.ndarray) -> np.ndarray:
@@ -42,15 +43,7 @@ def small_groups_by_hand(points: np.ndarray) -> np.ndarray:
         for j in row:
             linked[i].add(int(j))
             linked[int(j)].add(i)
-    group = np.full(len(unique), -1)
-    for start in range(len(unique)):
-        if group[start] < 0:
-            group[start], frontier = start, [start]
-            while frontier:
-                for j in linked[frontier.pop()]:
-                    if group[j] < 0:
-                        group[j] = start
-                        frontier.append(j)
+    group = np.array(flooded(linked))
     counts = {g: int((group[inverse] == g).sum()) for g in set(group.tolist())}
     return np.array([counts[g] < module.GROUP_SHARE * len(points) for g in group[inverse]])
 
