@@ -99,7 +99,9 @@ def service(tmp_path_factory):
     port = free_port()
     script = Path(sys.executable).with_name("edgerecon")
     command = [str(script)] if script.exists() else [sys.executable, "-m", "service.cli"]
-    env = {**clean_environ(), **TEST_ENV, "EDGERECON_API_KEY": API_KEY}
+    # Its own data folder: the user's (~/.local/share/edgerecon) keeps the jobs of an earlier run
+    # that was stopped, and serve resumes them first (a long one held the one worker past every wait).
+    env = {**clean_environ(), **TEST_ENV, "EDGERECON_API_KEY": API_KEY, "EDGERECON_DATA_DIR": str(directory / "data")}
     log = open(directory / "serve.log", "wb")
     process = subprocess.Popen([*command, "serve", "--port", str(port)], env=env, cwd=ROOT, stdout=log, stderr=log)
     url = f"http://127.0.0.1:{port}"
