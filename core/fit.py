@@ -31,7 +31,7 @@ from core.sampling import (
     plane_normals,
     subsample_rows,
 )
-from core.trees import kd_tree
+from core.trees import nearest_others
 
 # The most input points a fit draws its batches from. 1,800 steps of 512 to 1,024 points see each
 # of 131,072 points 9 times; beyond that, more points only add set-up (neighbour queries at every
@@ -114,7 +114,7 @@ def fit(
     check = None
     if params.encoding == "auto" and params.features > 0 and params.iterations >= CHECKED_ITERATIONS:
         floor = max(MISS_FLOOR, setup.spacing)
-        neighbours = _nearest_others(points[level_rows], SUPPORT_NEIGHBOURS)
+        neighbours = torch.as_tensor(nearest_others(points[level_rows], SUPPORT_NEIGHBOURS, torch.get_num_threads()))
         check = _Check(round(CHECK_SHARE * params.iterations), level_points, neighbours, floor, setup.noise)
     model = _train(cloud, setup, params, features, progress, should_cancel, check)
     if model is None:
@@ -373,14 +373,6 @@ def residual_tail(model: Callable[[Tensor], Tensor], points: Tensor, neighbours:
     high = torch.quantile(torch.minimum(residual, support), 0.999).item()
     typical = torch.quantile(residual, 0.5).item()
     return high / max(typical, 1e-12), high
-
-
-def _nearest_others(points: np.ndarray, count: int) -> Tensor:
-    """(n, count): the rows of each of ``points``' (n, 3) ``count`` nearest other points (fewer
-    in a cloud of fewer)."""
-    count = min(count, len(points) - 1)
-    _, rows = kd_tree(points).query(points, k=count + 1, workers=torch.get_num_threads())
-    return torch.as_tensor(np.asarray(rows).reshape(len(points), -1)[:, 1:])
 
 
 @torch.no_grad()

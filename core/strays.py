@@ -17,7 +17,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from core.trees import kd_tree
+from core.trees import kd_tree, nearest_others
 
 NEIGHBOURS = 8
 # A point is a stray where its NEIGHBOURS-th nearest neighbour lies more than STRAY_RATIO times as
@@ -79,7 +79,7 @@ def _small_groups(points: np.ndarray, workers: int) -> np.ndarray:
     inverse = inverse.reshape(-1)
     if len(unique) <= NEIGHBOURS + 1:
         return np.zeros(len(points), dtype=bool)
-    nearest = kd_tree(unique).query(unique, k=NEIGHBOURS + 1, workers=workers)[1][:, 1:]
+    nearest = nearest_others(unique, NEIGHBOURS, workers)
     rows = np.repeat(np.arange(len(unique)), NEIGHBOURS)
     links = coo_matrix((np.ones(len(rows), dtype=bool), (rows, nearest.reshape(-1))), shape=(len(unique),) * 2)
     _, group = connected_components(links, directed=False)

@@ -17,3 +17,11 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     Queries are not affected."""
     with denormals_kept():
         return cKDTree(points, balanced_tree=True)
+
+
+def nearest_others(points: np.ndarray, count: int, workers: int = 1) -> np.ndarray:
+    """(n, count): the rows of each of ``points``' (n, 3) ``count`` nearest other points (fewer in
+    a cloud of fewer), queried on ``workers`` threads."""
+    count = min(count, len(points) - 1)
+    _, rows = kd_tree(points).query(points, k=count + 1, workers=workers)
+    return np.asarray(rows).reshape(len(points), -1)[:, 1:]

@@ -27,6 +27,7 @@ from core.network import ImplicitNetwork
 from core.params import FitParams
 from core.progress import Progress, Stage
 from core.sampling import FreeSpace, eikonal_samples, local_scales
+from core.trees import nearest_others
 from evaluation.metrics import distance_to_mesh, edge_scores, normal_errors, surface_distances
 from evaluation.shapes import sample_shape
 
@@ -570,8 +571,8 @@ def _sphere_points(noise: float, missed: int = 0, seed: int = 0, together: bool 
 
 
 def _residual_tail(f: torch.nn.Module, points: torch.Tensor) -> tuple[float, float]:
-    neighbours = fit_module._nearest_others(points.numpy(), fit_module.SUPPORT_NEIGHBOURS)
-    return fit_module.residual_tail(f, points, neighbours)
+    neighbours = nearest_others(points.numpy(), fit_module.SUPPORT_NEIGHBOURS)
+    return fit_module.residual_tail(f, points, torch.as_tensor(neighbours))
 
 
 def test_the_residual_tail_of_points_at_their_noise_is_far_under_the_limit_whatever_its_width():
@@ -615,15 +616,6 @@ def test_the_residual_tail_equals_one_taken_point_by_point_from_each_ones_neighb
         counted = [min(residual[i], sorted(residual[rows[i]], reverse=True)[rank - 1]) for i in range(count)]
         assert reach == pytest.approx(np.quantile(counted, 0.999), rel=1e-5)
         assert tail == pytest.approx(reach / np.quantile(residual, 0.5), rel=1e-5)
-
-
-def test_the_nearest_others_are_each_points_nearest_but_itself():
-    points = np.random.default_rng(2).normal(size=(400, 3))
-    rows = fit_module._nearest_others(points, 8).numpy()
-    distances = np.linalg.norm(points[:, None] - points[None], axis=-1)
-    np.fill_diagonal(distances, np.inf)
-    assert np.array_equal(np.sort(rows, axis=1), np.sort(np.argsort(distances, axis=1)[:, :8], axis=1))
-    assert fit_module._nearest_others(points[:3], 8).shape == (3, 2)
 
 
 def _median_spacing(points: np.ndarray) -> float:

@@ -6,7 +6,10 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
+
 from core.runtime import denormals_kept, flush_denormals, flushing_denormals
+from core.trees import nearest_others
 from tests.helpers import ROOT
 
 
@@ -48,3 +51,12 @@ def test_denormals_kept_turns_flushing_off_for_its_block_only_and_leaves_an_unfl
     with denormals_kept():
         assert not flushing_denormals()
     assert flushing_denormals()  # the autouse fixture turns it off after the test
+
+
+def test_the_nearest_others_are_each_points_nearest_but_itself():
+    points = np.random.default_rng(2).normal(size=(400, 3))
+    rows = nearest_others(points, 8, workers=2)
+    distances = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(distances, np.inf)
+    assert np.array_equal(np.sort(rows, axis=1), np.sort(np.argsort(distances, axis=1)[:, :8], axis=1))
+    assert nearest_others(points[:3], 8).shape == (3, 2)
